@@ -1,0 +1,1 @@
+"""Current-based impedance control of the arm and the base follower."""

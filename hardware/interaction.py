@@ -1,0 +1,119 @@
+"""Forces a person or the environment puts on the end effector in simulation.
+
+All vectors are in the world frame: forces N, torques N m, points m, times s (simulation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from jaxcomp.errors import InputError
+
+
+def vec3(value, name: str) -> np.ndarray:
+    """A finite (3,) float array or InputError."""
+    arr = np.asarray(value, dtype=float)
+    if arr.shape != (3,) or not np.isfinite(arr).all():
+        raise InputError(f"{name} must be a finite vector of shape (3,), got {value!r}")
+    return arr
+
+
+@dataclass(frozen=True)
+class Push:
+    """A constant wrench on the end effector from ``start`` for ``duration`` s."""
+
+    start: float
+    duration: float
+    force: np.ndarray
+    torque: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def active(self, t: float) -> bool:
+        return self.start <= t < self.start + self.duration
+
+
+@dataclass(frozen=True)
+class Rope:
+    """A rope with a spring between the end effector and ``anchor`` (paper, Experiment 2).
+
+    Slack within ``free_length`` m of the anchor; beyond it pulls the end effector back with
+    ``stiffness`` N/m times the stretch.
+    """
+
+    anchor: np.ndarray
+    free_length: float
+    stiffness: float
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.free_length) and self.free_length >= 0):
+            raise InputError(f"rope free_length must be >= 0 m, got {self.free_length}")
+        if not (np.isfinite(self.stiffness) and self.stiffness >= 0):
+            raise InputError(f"rope stiffness must be >= 0 N/m, got {self.stiffness}")
+
+    def force(self, point: np.ndarray) -> np.ndarray:
+        """(3,) N on the end effector at ``point``: zero while slack."""
+        d = point - self.anchor
+        dist = float(np.linalg.norm(d))
+        if dist <= self.free_length or dist == 0.0:
+            return np.zeros(3)
+        return -self.stiffness * (dist - self.free_length) * d / dist
+
+
+class Interaction:
+    """The external wrench on the end effector: a constant one, scripted pushes, a rope."""
+
+    def __init__(self) -> None:
+        self.force = np.zeros(3)
+        self.torque = np.zeros(3)
+        self.pushes: list[Push] = []
+        self.rope: Rope | None = None
+        self.rope_force = np.zeros(3)
+        self._idle = True
+
+    @property
+    def idle(self) -> bool:
+        """True when nothing acts on the end effector (the simulator skips the wrench)."""
+        return self._idle
+
+    def _update(self) -> None:
+        self._idle = not (
+            self.pushes or self.rope is not None or self.force.any() or self.torque.any()
+        )
+
+    def set_wrench(self, force=(0.0, 0.0, 0.0), torque=(0.0, 0.0, 0.0)) -> None:
+        self.force = vec3(force, "force")
+        self.torque = vec3(torque, "torque")
+        self._update()
+
+    def add_push(self, start: float, duration: float, force, torque=(0.0, 0.0, 0.0)) -> Push:
+        if not (np.isfinite(start) and np.isfinite(duration) and duration > 0):
+            raise InputError(
+                f"push needs a finite start and duration > 0 s, got {start}, {duration}"
+            )
+        push = Push(float(start), float(duration), vec3(force, "force"), vec3(torque, "torque"))
+        self.pushes.append(push)
+        self._update()
+        return push
+
+    def attach_rope(self, anchor, free_length: float, stiffness: float) -> Rope:
+        self.rope = Rope(vec3(anchor, "anchor"), float(free_length), float(stiffness))
+        self._update()
+        return self.rope
+
+    def detach_rope(self) -> None:
+        self.rope = None
+        self.rope_force = np.zeros(3)
+        self._update()
+
+    def wrench(self, t: float, point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Total force (3,) N and torque (3,) N m on the end effector at time t."""
+        force, torque = self.force.copy(), self.torque.copy()
+        for p in self.pushes:
+            if p.active(t):
+                force += p.force
+                torque += p.torque
+        if self.rope is not None:
+            self.rope_force = self.rope.force(point)
+            force += self.rope_force
+        return force, torque

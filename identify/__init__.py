@@ -1,0 +1,1 @@
+"""Identification of current/torque ratios, friction losses and centre-of-mass errors."""

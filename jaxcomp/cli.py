@@ -1,0 +1,108 @@
+"""The ``jaxcomp`` command line: the one place that wires models, hardware, identify, control."""
+
+import json
+import sys
+
+import click
+import numpy as np
+
+from jaxcomp.errors import JaxcompError
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="jaxcomp")
+def cli() -> None:
+    """jaxcomp: compliant control of current-controlled arms without torque sensors.
+
+    Identify each joint's current/torque ratio, friction loss and the centre-of-mass errors of
+    the robot model from slow gravity-loaded sweeps, then drive the arm with a current-based
+    Cartesian impedance controller. Units are SI throughout (m, rad, N m, A) unless a column
+    says deg.
+    """
+
+
+@cli.command()
+def models() -> None:
+    """List the built-in robot models."""
+    from jaxcomp import builtin_models, load_robot
+
+    for name in builtin_models():
+        robot = load_robot(name)
+        click.echo(f"{name:<18} {robot.nv} joints: {', '.join(robot.joint_names)}")
+
+
+@cli.command()
+@click.argument("robot", default="gen3_lite")
+@click.option(
+    "--pose",
+    default=None,
+    help="Named pose (MJCF keyframe) for the gravity torques; default 'home' when the model "
+    "has it, else all zeros.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of tables.")
+def info(robot: str, pose: str | None, as_json: bool) -> None:
+    """Show a robot's joints, link masses and gravity torques at a pose.
+
+    ROBOT is a built-in name (see `jaxcomp models`) or a path to an MJCF or URDF file.
+    """
+    from jaxcomp import load_robot
+
+    r = load_robot(robot)
+    if pose is None:
+        pose = "home" if "home" in r.named_poses else None
+    q = r.pose(pose) if pose else np.zeros(r.nv)
+    g = np.asarray(r.gravity(q))
+    params = r.nominal_params()
+    masses = np.asarray(params.mass)
+    lo, hi = r.joint_limits.T
+    kinds = ["revolute" if h else "prismatic" for h in r.tree.is_hinge]
+    if as_json:
+        out = {
+            "robot": r.name,
+            "source": str(r.source),
+            "joints": [
+                {"name": n, "type": k, "lower": float(a), "upper": float(b), "effort": float(e)}
+                for n, k, a, b, e in zip(r.joint_names, kinds, lo, hi, r.effort_limits, strict=True)
+            ],
+            "links": {n: float(m) for n, m in zip(r.link_names, masses, strict=True)},
+            "pose": pose or "zero",
+            "q": q.tolist(),
+            "gravity_torque": g.tolist(),
+        }
+        click.echo(json.dumps(out, indent=2))
+        return
+    click.echo(f"{r.name}  ({r.source})")
+    click.echo(f"\n{r.nv} joints")
+    click.echo(f"  {'joint':<12}{'type':<11}{'lower':>9}{'upper':>9}  {'effort limit':>12}")
+    for n, k, a, b, e in zip(r.joint_names, kinds, lo, hi, r.effort_limits, strict=True):
+        if k == "revolute":
+            click.echo(
+                f"  {n:<12}{k:<11}{np.rad2deg(a):>7.1f}°{np.rad2deg(b):>8.1f}°{e:>10.1f} N m"
+            )
+        else:
+            click.echo(f"  {n:<12}{k:<11}{a:>7.3f}m{b:>8.3f}m{e:>10.1f} N")
+    click.echo(f"\n{len(r.link_names)} links, total mass {masses.sum():.4f} kg")
+    for n, m in zip(r.link_names, masses, strict=True):
+        click.echo(f"  {n:<16}{m:>9.4f} kg")
+    shown = np.where(r.tree.is_hinge, np.rad2deg(q), q)
+    click.echo(
+        f"\nGravity torque g(q) at pose '{pose or 'zero'}', q = {np.round(shown, 2)} (deg or m)"
+    )
+    click.echo("  the torque each joint must apply to hold the arm still, N m (N for slides)")
+    for n, t in zip(r.joint_names, g + 0.0, strict=True):
+        click.echo(f"  {n:<12}{t:>10.4f}")
+
+
+def main() -> None:
+    """Entry point: run the CLI; jaxcomp's own errors print one line and exit with status 2."""
+    try:
+        cli(standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("aborted", err=True)
+        sys.exit(130)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except JaxcompError as exc:
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(2)

@@ -1,0 +1,269 @@
+"""``load_robot`` and ``Robot``: a compiled MuJoCo model with its dynamics in JAX.
+
+The ``Robot`` methods validate their inputs (shape, NaN, names) and call jitted pure functions
+of ``jaxcomp.dynamics`` that close over the model's constants. Units: q in rad (hinge) or m
+(slide), dq in rad/s or m/s, torques in N m or N, positions in m, world (base) frame.
+"""
+
+from collections.abc import Callable
+from functools import cached_property
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from jaxcomp import dynamics
+from jaxcomp.errors import InputError, ModelError
+from jaxcomp.kinematic_tree import KinematicTree, tree_from_mujoco
+from jaxcomp.models import BUILTIN
+from jaxcomp.params import InertialParams
+
+
+def builtin_models() -> list[str]:
+    """Names accepted by ``load_robot`` besides file paths."""
+    return sorted(BUILTIN)
+
+
+def _compile(name_or_path: str | Path) -> tuple[str, Path, mujoco.MjModel]:
+    key = str(name_or_path)
+    if key in BUILTIN:
+        path = BUILTIN[key]
+        name = key
+    else:
+        path = Path(key).expanduser()
+        if path.suffix.lower() not in (".xml", ".mjcf", ".urdf") and not path.exists():
+            raise ModelError(
+                f"unknown robot {key!r}: not a built-in model ({', '.join(builtin_models())}) "
+                "and not a path to an MJCF (.xml) or URDF (.urdf) file"
+            )
+        if not path.is_file():
+            raise ModelError(f"robot model file not found: {path}")
+        name = path.stem
+    try:
+        model = mujoco.MjModel.from_xml_path(str(path))
+    except Exception as exc:  # MuJoCo raises ValueError with its parser's message
+        raise ModelError(f"MuJoCo cannot compile {path}: {exc}") from None
+    return name, path.resolve(), model
+
+
+def load_robot(name_or_path: "str | Path | Robot") -> "Robot":
+    """A ``Robot`` from a built-in name (``builtin_models()``) or an MJCF / URDF path."""
+    if isinstance(name_or_path, Robot):
+        return name_or_path
+    name, path, model = _compile(name_or_path)
+    return Robot(model, name=name, source=path)
+
+
+class Robot:
+    """A robot model: MuJoCo model, kinematic tree, and jitted dynamics.
+
+    Attributes:
+        name: built-in name or file stem. source: the model file.
+        model: the compiled ``mujoco.MjModel``. tree: its ``KinematicTree``.
+    """
+
+    def __init__(self, model: mujoco.MjModel, name: str = "robot", source: Path | None = None):
+        self.model = model
+        self.name = name
+        self.source = source
+        self.tree: KinematicTree = tree_from_mujoco(model)
+        self._jitted: dict[str, Callable] = {}
+
+    def __repr__(self) -> str:
+        return f"Robot({self.name!r}, joints={list(self.joint_names)})"
+
+    # ----------------------------------------------------------------- names and constants
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return self.tree.joint_names
+
+    @property
+    def link_names(self) -> tuple[str, ...]:
+        return self.tree.body_names
+
+    @property
+    def site_names(self) -> tuple[str, ...]:
+        return self.tree.site_names
+
+    @property
+    def nv(self) -> int:
+        """Number of joints (degrees of freedom)."""
+        return self.tree.nv
+
+    @property
+    def joint_limits(self) -> np.ndarray:
+        """(nv, 2) lower and upper joint position limits, rad or m (inf when unlimited)."""
+        return self.tree.joint_range.copy()
+
+    @cached_property
+    def effort_limits(self) -> np.ndarray:
+        """(nv,) actuator torque limits, N m or N (inf when the model sets none)."""
+        limited = self.model.jnt_actfrclimited.astype(bool)
+        return np.where(limited, np.abs(self.model.jnt_actfrcrange).max(axis=1), np.inf)
+
+    @cached_property
+    def default_gravity(self) -> np.ndarray:
+        """The model's gravity vector (3,) m/s^2 in the world frame (MuJoCo's opt.gravity)."""
+        return self.model.opt.gravity.copy()
+
+    def nominal_params(self) -> InertialParams:
+        """The model's inertial parameters as JAX arrays (a fresh pytree)."""
+        n = self.tree.nominal
+        return InertialParams(jnp.asarray(n.mass), jnp.asarray(n.com), jnp.asarray(n.inertia))
+
+    def custom_numeric(self, name: str) -> np.ndarray | None:
+        """A ``<custom><numeric>`` array of the model, or None when absent."""
+        i = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_NUMERIC, name)
+        if i < 0:
+            return None
+        adr, size = self.model.numeric_adr[i], self.model.numeric_size[i]
+        return self.model.numeric_data[adr : adr + size].copy()
+
+    def custom_text(self, name: str) -> str | None:
+        """A ``<custom><text>`` string of the model, or None when absent."""
+        i = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_TEXT, name)
+        if i < 0:
+            return None
+        adr, size = self.model.text_adr[i], self.model.text_size[i]
+        return bytes(self.model.text_data[adr : adr + size]).decode().rstrip("\x00")
+
+    @cached_property
+    def named_poses(self) -> dict[str, np.ndarray]:
+        """Keyframes of the model by name: joint positions (nv,), rad or m."""
+        poses = {}
+        for k in range(self.model.nkey):
+            name = mujoco.mj_id2name(self.model, mujoco.mjtObj.mjOBJ_KEY, k) or f"key{k}"
+            poses[name] = self.model.key_qpos[k].copy()
+        return poses
+
+    def pose(self, name: str) -> np.ndarray:
+        """Joint positions (nv,) of a named pose (MJCF keyframe), rad or m."""
+        if name not in self.named_poses:
+            raise InputError(
+                f"unknown pose {name!r} for {self.name}; known: {', '.join(self.named_poses)}"
+            )
+        return self.named_poses[name].copy()
+
+    def link_index(self, link: str) -> int:
+        """Index of a link (body) by name."""
+        try:
+            return self.tree.body_names.index(link)
+        except ValueError:
+            raise InputError(
+                f"unknown link {link!r} for {self.name}; links: {', '.join(self.link_names)}"
+            ) from None
+
+    def site_index(self, site: str) -> int:
+        """Index of a site by name."""
+        try:
+            return self.tree.site_names.index(site)
+        except ValueError:
+            known = ", ".join(self.site_names) or "none"
+            raise InputError(f"unknown site {site!r} for {self.name}; sites: {known}") from None
+
+    # ----------------------------------------------------------------- input checks
+    def check_q(self, q, what: str = "q") -> jax.Array:
+        """q as a float array of shape (nv,), or InputError naming the problem."""
+        if isinstance(q, jax.core.Tracer):
+            arr = q
+        else:
+            arr = np.asarray(q, dtype=float)
+        if arr.shape != (self.nv,):
+            raise InputError(
+                f"{what} must have shape ({self.nv},) for {self.name} "
+                f"(joints {', '.join(self.joint_names)}), got shape {tuple(arr.shape)}"
+            )
+        if not isinstance(arr, jax.core.Tracer) and not np.all(np.isfinite(arr)):
+            bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(arr))]
+            raise InputError(f"{what} contains NaN or inf at joint(s) {', '.join(bad)}")
+        return jnp.asarray(arr)
+
+    def check_gravity(self, gravity) -> jax.Array:
+        g = self.default_gravity if gravity is None else np.asarray(gravity, dtype=float)
+        if g.shape != (3,) or not np.all(np.isfinite(g)):
+            raise InputError(f"gravity must be a finite vector of shape (3,) m/s^2, got {g!r}")
+        return jnp.asarray(g)
+
+    def check_params(self, params: InertialParams | None) -> InertialParams:
+        if params is None:
+            return self.nominal_params()
+        nb = self.tree.nb
+        shapes = {"mass": (nb,), "com": (nb, 3), "inertia": (nb, 3, 3)}
+        for field, shape in shapes.items():
+            value = getattr(params, field)
+            if tuple(np.shape(value)) != shape:
+                raise InputError(
+                    f"params.{field} must have shape {shape}, got {tuple(np.shape(value))}"
+                )
+        return params
+
+    # ----------------------------------------------------------------- dynamics
+    def _fn(self, key: str, build: Callable[[], Callable]) -> Callable:
+        if key not in self._jitted:
+            self._jitted[key] = jax.jit(build())
+        return self._jitted[key]
+
+    def forward_kinematics(self, q) -> dynamics.Frames:
+        """World frames of all links and joints (see ``dynamics.Frames``)."""
+        return self._fn("fk", lambda: lambda q: dynamics.forward_kinematics(self.tree, q))(
+            self.check_q(q)
+        )
+
+    def gravity(self, q, params: InertialParams | None = None, gravity=None) -> jax.Array:
+        """g(q) (nv,) N m: joint torques holding the arm against gravity (m/s^2, base frame)."""
+        fn = self._fn("gravity", lambda: lambda q, p, g: dynamics.gravity(self.tree, q, p, g))
+        return fn(self.check_q(q), self.check_params(params), self.check_gravity(gravity))
+
+    def mass_matrix(self, q, params: InertialParams | None = None) -> jax.Array:
+        """M(q) (nv, nv), kg m^2 (armature included)."""
+        fn = self._fn("mass", lambda: lambda q, p: dynamics.mass_matrix(self.tree, q, p))
+        return fn(self.check_q(q), self.check_params(params))
+
+    def coriolis(self, q, dq, params: InertialParams | None = None) -> jax.Array:
+        """C(q, dq) dq (nv,), N m."""
+        fn = self._fn("cor", lambda: lambda q, v, p: dynamics.coriolis(self.tree, q, v, p))
+        return fn(self.check_q(q), self.check_q(dq, "dq"), self.check_params(params))
+
+    def bias(self, q, dq, params: InertialParams | None = None, gravity=None) -> jax.Array:
+        """C(q, dq) dq + g(q) (nv,), N m."""
+        fn = self._fn("bias", lambda: lambda q, v, p, g: dynamics.bias(self.tree, q, v, p, g))
+        return fn(
+            self.check_q(q),
+            self.check_q(dq, "dq"),
+            self.check_params(params),
+            self.check_gravity(gravity),
+        )
+
+    def _site_fn(self, kind: str, site: str, impl: Callable) -> Callable:
+        s = self.site_index(site)
+        return self._fn(f"{kind}:{site}", lambda: lambda *args: impl(self.tree, *args, s))
+
+    def jacobian(self, q, site: str) -> jax.Array:
+        """(6, nv) site Jacobian, world-aligned rows (vx, vy, vz, wx, wy, wz)."""
+        return self._site_fn("jac", site, dynamics.site_jacobian)(self.check_q(q))
+
+    def site_position(self, q, site: str) -> jax.Array:
+        """(3,) world position of a site, m."""
+        return self._site_fn("pose", site, dynamics.site_pose)(self.check_q(q))[0]
+
+    def site_pose(self, q, site: str) -> tuple[jax.Array, jax.Array]:
+        """World position (3,) m and rotation matrix (3, 3) of a site."""
+        return self._site_fn("pose", site, dynamics.site_pose)(self.check_q(q))
+
+    def subtree_com(self, q, params: InertialParams | None = None):
+        """Centre of mass (nb, 3) m and mass (nb,) kg of every link's subtree."""
+        fn = self._fn("subcom", lambda: lambda q, p: dynamics.subtree_com(self.tree, q, p))
+        return fn(self.check_q(q), self.check_params(params))
+
+    def operational_space(
+        self, q, dq, site: str, params: InertialParams | None = None
+    ) -> dynamics.OperationalSpace:
+        """Lambda, mu, J_bar and nullspace projector N of a site's position task."""
+        s = self.site_index(site)
+        fn = self._fn(
+            f"os:{site}",
+            lambda: lambda q, v, p: dynamics.operational_space(self.tree, q, v, s, p),
+        )
+        return fn(self.check_q(q), self.check_q(dq, "dq"), self.check_params(params))

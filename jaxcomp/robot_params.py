@@ -1,0 +1,255 @@
+"""``RobotParams``: the actuator and centre-of-mass parameters identification writes.
+
+The params file ties the three parts of jaxcomp together: identification writes it, the
+controller reads it to turn torques into currents (``c = r tau + l ...``, paper Eq. 7, 14-16),
+and the simulator reads the same format as its hidden "true robot".
+
+Units: ``ratio`` A/(N m) per current-controlled joint, ``friction`` A (friction loss expressed
+as motor current), ``com_offset`` m added to a link's nominal centre of mass in the link's own
+frame, ``phase_shift`` rad. The current-controlled joints are the robot's joints minus the
+planar joints of a mobile base (``BASE_JOINTS``).
+
+JSON layout::
+
+    {"model": "gen3_lite", "ratio": [...], "friction": [...],
+     "com_offset": {"ARM": [dx, dy, dz], ...}, "phase_shift": [...] | null,
+     "std": {"ratio": [...], ...} | null, "method": "...", "fit_seconds": 12.3 | null}
+
+Unknown keys are ignored, so a file may carry extra fields (the simulator's truth adds its
+noise level).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcomp.errors import InputError
+from jaxcomp.params import InertialParams
+
+if TYPE_CHECKING:
+    from jaxcomp.robot import Robot
+
+#: Joints of a mobile base (not current-controlled): excluded from the params' joints.
+BASE_JOINTS = ("base_x", "base_y", "base_yaw")
+
+_REQUIRED = ("model", "ratio", "friction")
+
+
+def arm_joint_indices(robot: Robot) -> np.ndarray:
+    """Indices (into ``robot.joint_names``) of the current-controlled joints, in order."""
+    return np.array([i for i, n in enumerate(robot.joint_names) if n not in BASE_JOINTS], int)
+
+
+def _vector(value: Any, name: str, n: int | None = None) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a list of numbers, got {value!r}") from None
+    if arr.ndim != 1 or (n is not None and arr.shape[0] != n):
+        want = f"({n},)" if n is not None else "a 1-D list"
+        raise InputError(f"{name} must have shape {want}, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{name} contains NaN or inf at index {np.flatnonzero(~np.isfinite(arr))}")
+    return arr
+
+
+@dataclass
+class RobotParams:
+    """Per-joint current/torque ratio and friction loss, per-link COM offsets.
+
+    Attributes:
+        model: robot model name (``Robot.name``) the params belong to.
+        ratio: (n,) A/(N m), current per joint torque, > 0.
+        friction: (n,) A, Coulomb friction loss as motor current, >= 0.
+        com_offset: {link: (3,) m}, added to the link's nominal COM, link frame.
+        phase_shift: (n,) rad or None, the gravity phase shift estimated per joint.
+        std: standard errors, {field: same structure as the field} or None.
+        method: how the params were obtained ("nominal", "truth", a fit method ...).
+        fit_seconds: wall time of the fit, s, or None.
+    """
+
+    model: str
+    ratio: np.ndarray
+    friction: np.ndarray
+    com_offset: dict[str, np.ndarray] = field(default_factory=dict)
+    phase_shift: np.ndarray | None = None
+    std: dict | None = None
+    method: str = "nominal"
+    fit_seconds: float | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.model, str) or not self.model:
+            raise InputError(f"model must be a non-empty string, got {self.model!r}")
+        self.ratio = _vector(self.ratio, "ratio")
+        n = self.ratio.shape[0]
+        if n == 0:
+            raise InputError("ratio is empty: the params need one ratio per joint")
+        self.friction = _vector(self.friction, "friction", n)
+        if np.any(self.ratio <= 0):
+            bad = np.flatnonzero(self.ratio <= 0).tolist()
+            raise InputError(f"ratio must be positive (A per N m); joint index(es) {bad} are not")
+        if np.any(self.friction < 0):
+            bad = np.flatnonzero(self.friction < 0).tolist()
+            raise InputError(f"friction must be >= 0 A; joint index(es) {bad} are negative")
+        if not isinstance(self.com_offset, Mapping):
+            raise InputError("com_offset must be a mapping {link name: [dx, dy, dz]} in m")
+        self.com_offset = {
+            str(k): _vector(v, f"com_offset[{k!r}]", 3) for k, v in self.com_offset.items()
+        }
+        if self.phase_shift is not None:
+            self.phase_shift = _vector(self.phase_shift, "phase_shift", n)
+        if self.std is not None and not isinstance(self.std, Mapping):
+            raise InputError(f"std must be a mapping of standard errors or null, got {self.std!r}")
+        if self.fit_seconds is not None:
+            fs = float(self.fit_seconds)
+            if not math.isfinite(fs) or fs < 0:
+                raise InputError(f"fit_seconds must be a finite number >= 0, got {fs}")
+            self.fit_seconds = fs
+        if not isinstance(self.method, str):
+            raise InputError(f"method must be a string, got {self.method!r}")
+
+    @property
+    def n(self) -> int:
+        """Number of current-controlled joints."""
+        return self.ratio.shape[0]
+
+    # ----------------------------------------------------------------- constructors
+    @classmethod
+    def nominal(cls, robot: Robot) -> RobotParams:
+        """The model's own figures: ratio from ``jaxcomp_nominal_ratio`` (else 1), no friction."""
+        n = len(arm_joint_indices(robot))
+        ratio = robot.custom_numeric("jaxcomp_nominal_ratio")
+        if ratio is None:
+            ratio = np.ones(n)
+        elif ratio.shape != (n,):
+            raise InputError(
+                f"{robot.name}: custom numeric jaxcomp_nominal_ratio has {ratio.size} values "
+                f"for {n} current-controlled joints"
+            )
+        return cls(model=robot.name, ratio=ratio, friction=np.zeros(n), method="nominal")
+
+    # ----------------------------------------------------------------- checks
+    def check(self, robot: Robot) -> RobotParams:
+        """Raise InputError unless the params fit ``robot`` (joint count, link names)."""
+        n = len(arm_joint_indices(robot))
+        if self.n != n:
+            raise InputError(
+                f"ratio has {self.n} entries but {robot.name} has {n} current-controlled joints"
+            )
+        unknown = [k for k in self.com_offset if k not in robot.link_names]
+        if unknown:
+            raise InputError(
+                f"com_offset names unknown link(s) {', '.join(map(repr, unknown))} of "
+                f"{robot.name}; links: {', '.join(robot.link_names)}"
+            )
+        return self
+
+    def inertial_params(self, robot: Robot) -> InertialParams:
+        """The robot's nominal inertial params with ``com_offset`` added (link frame, m)."""
+        self.check(robot)
+        p = robot.nominal_params()
+        com = np.array(p.com)
+        for link, off in self.com_offset.items():
+            com[robot.link_index(link)] += off
+        return InertialParams(p.mass, jnp.asarray(com), p.inertia)
+
+    # ----------------------------------------------------------------- JSON
+    def to_dict(self) -> dict:
+        """Plain JSON-ready dict (lists of floats)."""
+        return {
+            "model": self.model,
+            "ratio": self.ratio.tolist(),
+            "friction": self.friction.tolist(),
+            "com_offset": {k: v.tolist() for k, v in self.com_offset.items()},
+            "phase_shift": None if self.phase_shift is None else self.phase_shift.tolist(),
+            "std": _jsonable(self.std),
+            "method": self.method,
+            "fit_seconds": self.fit_seconds,
+        }
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+    @classmethod
+    def from_dict(cls, data: Mapping, robot: Robot | None = None) -> RobotParams:
+        """Params from a dict; InputError naming the field for anything malformed."""
+        if not isinstance(data, Mapping):
+            raise InputError(f"params must be a JSON object, got {type(data).__name__}")
+        missing = [k for k in _REQUIRED if k not in data]
+        if missing:
+            raise InputError(f"params field(s) missing: {', '.join(missing)}")
+        params = cls(
+            model=data["model"],
+            ratio=data["ratio"],
+            friction=data["friction"],
+            com_offset=data.get("com_offset") or {},
+            phase_shift=data.get("phase_shift"),
+            std=data.get("std"),
+            method=data.get("method", "unknown"),
+            fit_seconds=data.get("fit_seconds"),
+        )
+        return params.check(robot) if robot is not None else params
+
+    @classmethod
+    def from_json(cls, text: str, robot: Robot | None = None) -> RobotParams:
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise InputError(f"params are not valid JSON: {exc}") from None
+        return cls.from_dict(data, robot)
+
+    def save(self, path: str | Path, extra: Mapping | None = None) -> Path:
+        """Write the JSON atomically (temp file + rename); ``extra`` keys are added."""
+        data = self.to_dict()
+        if extra:
+            data.update(_jsonable(dict(extra)))
+        return write_json_atomic(path, data)
+
+    @classmethod
+    def load(cls, path: str | Path, robot: Robot | None = None) -> RobotParams:
+        """Read and validate a params file (also against ``robot`` when given)."""
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"params file not found: {path}")
+        try:
+            return cls.from_json(path.read_text(), robot)
+        except InputError as exc:
+            raise InputError(f"{path}: {exc}") from None
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, (np.ndarray, np.generic)) or hasattr(value, "__array__"):
+        return np.asarray(value).tolist()
+    return value
+
+
+def write_json_atomic(path: str | Path, data: Any) -> Path:
+    """Write ``data`` as JSON to ``path`` via a temp file and ``os.replace`` (never partial)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=2)
+            f.write("\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

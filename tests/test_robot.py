@@ -1,0 +1,132 @@
+"""load_robot, the Robot API, bad input, and the `jaxcomp info` command."""
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import jaxcomp
+from jaxcomp.cli import cli
+from jaxcomp.errors import InputError, ModelError
+
+
+@pytest.fixture(scope="module")
+def gen3():
+    return jaxcomp.load_robot("gen3_lite")
+
+
+def test_builtin_models_load_with_expected_joints():
+    assert jaxcomp.builtin_models() == ["dingo_o", "gen3_lite", "mobile_gen3_lite"]
+    mobile = jaxcomp.load_robot("mobile_gen3_lite")
+    assert mobile.joint_names[:3] == ("base_x", "base_y", "base_yaw")
+    assert mobile.nv == 9
+    assert list(mobile.tree.is_hinge[:3]) == [False, False, True]
+
+
+def test_api_shapes_and_values(gen3):
+    q = gen3.pose("preferred")
+    assert gen3.joint_names == tuple(f"joint_{k}" for k in range(6))
+    assert gen3.link_names[0] == "BASE" and gen3.link_names[-1] == "GRIPPER_FRAME"
+    g = np.asarray(gen3.gravity(q))
+    assert g.shape == (6,)
+    assert abs(g[1]) == pytest.approx(1.61, abs=0.01)  # FIGURES.md: joint 1 at the preferred pose
+    assert np.asarray(gen3.mass_matrix(q)).shape == (6, 6)
+    assert np.asarray(gen3.jacobian(q, "end_effector")).shape == (6, 6)
+    assert np.asarray(gen3.nominal_params().mass).sum() == pytest.approx(5.18674045, abs=1e-6)
+
+
+def test_gravity_vector_input_rotates_the_load(gen3):
+    """An arm on a wall: gravity along -x of the base frame loads joint 0, upright does not."""
+    q = gen3.pose("home")
+    upright = np.asarray(gen3.gravity(q))
+    wall = np.asarray(gen3.gravity(q, gravity=[-9.81, 0.0, 0.0]))
+    assert abs(upright[0]) < 1e-9 and abs(wall[0]) > 0.1
+    np.testing.assert_allclose(gen3.gravity(q, gravity=[0, 0, -2 * 9.81]), 2 * upright)
+
+
+def test_params_change_gravity_linearly_in_mass(gen3):
+    q = gen3.pose("home")
+    p = gen3.nominal_params()
+    heavier = p._replace(mass=p.mass * 2)
+    np.testing.assert_allclose(gen3.gravity(q, heavier), 2 * np.asarray(gen3.gravity(q)))
+
+
+@pytest.mark.parametrize(
+    ("source", "message"),
+    [
+        ("no_such_robot", "unknown robot 'no_such_robot'"),
+        ("/nonexistent/arm.urdf", "not found"),
+    ],
+)
+def test_bad_model_names(source, message):
+    with pytest.raises(ModelError, match=message):
+        jaxcomp.load_robot(source)
+
+
+def test_bad_model_files(tmp_path):
+    broken = tmp_path / "broken.xml"
+    broken.write_text("<mujoco><worldbody><body>")
+    with pytest.raises(ModelError, match="cannot compile"):
+        jaxcomp.load_robot(broken)
+    still = tmp_path / "still.xml"
+    still.write_text('<mujoco><worldbody><body><geom size="0.1"/></body></worldbody></mujoco>')
+    with pytest.raises(ModelError, match="no joints"):
+        jaxcomp.load_robot(still)
+    free = tmp_path / "free.xml"
+    free.write_text(
+        '<mujoco><worldbody><body name="box"><freejoint name="float"/>'
+        '<geom type="box" size="0.1 0.1 0.1"/></body></worldbody></mujoco>'
+    )
+    with pytest.raises(ModelError, match=r"float \(free\)"):
+        jaxcomp.load_robot(free)
+
+
+def test_bad_state_and_names(gen3):
+    with pytest.raises(InputError, match=r"shape \(6,\).*got shape \(5,\)"):
+        gen3.gravity(np.zeros(5))
+    q = np.zeros(6)
+    q[2] = np.nan
+    with pytest.raises(InputError, match="NaN or inf at joint.*joint_2"):
+        gen3.mass_matrix(q)
+    with pytest.raises(InputError, match="unknown site 'tool'.*end_effector"):
+        gen3.jacobian(np.zeros(6), "tool")
+    with pytest.raises(InputError, match="unknown link 'HAND'"):
+        gen3.link_index("HAND")
+    with pytest.raises(InputError, match="dq"):
+        gen3.bias(np.zeros(6), np.zeros(7))
+    with pytest.raises(InputError, match="gravity"):
+        gen3.gravity(np.zeros(6), gravity=[0, 0])
+
+
+def test_urdf_path_loads(tmp_path):
+    from arms import offset_arm_7dof
+
+    path = tmp_path / "arm.urdf"
+    path.write_text(offset_arm_7dof())
+    robot = jaxcomp.load_robot(path)
+    assert robot.nv == 7 and robot.name == "arm"
+
+
+def test_cli_info_prints_gravity_at_home(gen3):
+    result = CliRunner().invoke(cli, ["info", "gen3_lite", "--json"])
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.output)
+    assert out["pose"] == "home"
+    np.testing.assert_allclose(out["gravity_torque"], gen3.gravity(gen3.pose("home")), atol=1e-12)
+    text = CliRunner().invoke(cli, ["info", "gen3_lite"])
+    assert "GRIPPER_FRAME" in text.output and "joint_5" in text.output
+
+
+def test_cli_reports_unknown_robot_as_one_line():
+    import subprocess
+    import sys
+
+    proc = subprocess.run(
+        [sys.executable, "-c", "from jaxcomp.cli import main; main()", "info", "nope"],
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 2
+    assert "error: unknown robot 'nope'" in proc.stderr
+    assert "Traceback" not in proc.stderr
