@@ -105,57 +105,73 @@ def _frame_components(tree: KinematicTree, q: jax.Array) -> _FrameComponents:
 
 
 def forward_kinematics(tree: KinematicTree, q: jax.Array) -> Frames:
-    """World frames of all bodies and joints at joint positions q."""
-    fc = _frame_components(tree, q)
-    like = q[0]
-    return Frames(
-        rot=jnp.stack([cp.stack_mat(r, like) for r in fc.body_rot]),
-        pos=jnp.stack([cp.stack_vec(x, like) for x in fc.body_pos]),
-        axis=jnp.stack([cp.stack_vec(x, like) for x in fc.axis]),
-        anchor=jnp.stack([cp.stack_vec(x, like) for x in fc.anchor]),
+    """World frames of all bodies and joints at joint positions q (4x4 transforms, batched)."""
+    d = q - tree.joint_ref
+    hinge = tree.is_hinge.astype(float)
+    k1 = _skew(tree.joint_axis)
+    s = (jnp.sin(d) * hinge)[:, None, None]
+    c = ((1.0 - jnp.cos(d)) * hinge)[:, None, None]
+    rj = np.eye(3) + s * k1 + c * (k1 @ k1)  # (nv, 3, 3), identity for slides
+    tj = jnp.where(
+        tree.is_hinge[:, None],
+        tree.joint_pos - jnp.einsum("jab,jb->ja", rj, tree.joint_pos),
+        tree.joint_axis * d[:, None],
     )
+    bottom = jnp.broadcast_to(np.eye(4)[3], (tree.nv, 1, 4))
+    joint_local = jnp.concatenate([jnp.concatenate([rj, tj[:, :, None]], 2), bottom], 1)
+    fixed = np.zeros((tree.nb, 4, 4))
+    fixed[:, :3, :3], fixed[:, :3, 3], fixed[:, 3, 3] = tree.rot, tree.pos, 1.0
+    # the first joint of each body carries the body's fixed offset from its parent
+    pre = np.broadcast_to(np.eye(4), (tree.nv, 4, 4)).copy()
+    for b, joints in enumerate(tree.body_joints):
+        if joints:
+            pre[joints[0]] = fixed[b]
+    local = jnp.einsum("jab,jbc->jac", pre, joint_local)
+    body_t: list = [None] * tree.nb
+    joint_t: list = [None] * tree.nv
+    for b in range(tree.nb):
+        p = tree.parent[b]
+        t = None if p < 0 else body_t[p]
+        for j in tree.body_joints[b]:
+            t = local[j] if t is None else t @ local[j]
+            joint_t[j] = t
+        if not tree.body_joints[b]:
+            t = jnp.asarray(fixed[b]) if t is None else t @ fixed[b]
+        body_t[b] = t
+    bt, jt = jnp.stack(body_t), jnp.stack(joint_t)
+    axis = jnp.einsum("jab,jb->ja", jt[:, :3, :3], tree.joint_axis)
+    anchor = jt[:, :3, 3] + jnp.einsum("jab,jb->ja", jt[:, :3, :3], tree.joint_pos)
+    return Frames(rot=bt[:, :3, :3], pos=bt[:, :3, 3], axis=axis, anchor=anchor)
+
+
+def _point_on_body(frames: Frames, body: int, local: np.ndarray) -> jax.Array:
+    if body < 0:
+        return jnp.asarray(local, dtype=float)
+    return frames.pos[body] + frames.rot[body] @ local
 
 
 def site_pose(tree: KinematicTree, q: jax.Array, site: int) -> tuple[jax.Array, jax.Array]:
     """World position (3,) m and orientation (3, 3) of site index ``site``."""
-    fc = _frame_components(tree, q)
+    frames = forward_kinematics(tree, q)
     b = int(tree.site_body[site])
-    local_rot = cp.const_mat(tree.site_rot[site])
-    rot = local_rot if b < 0 else cp.mat_mat(fc.body_rot[b], local_rot)
-    like = q[0]
-    return cp.stack_vec(_site_point(tree, fc, site), like), cp.stack_mat(rot, like)
-
-
-def _jacobian_components(tree: KinematicTree, fc: _FrameComponents, body: int, point) -> list:
-    """Columns (nv of 6 components) of the Jacobian of a point fixed to ``body``."""
-    cols = []
-    for j in range(tree.nv):
-        if body < 0 or not tree.moves[j, body]:
-            cols.append([0.0] * 6)
-        elif tree.is_hinge[j]:
-            lin = cp.cross(fc.axis[j], cp.vec_sub(point, fc.anchor[j]))
-            cols.append(lin + fc.axis[j])
-        else:
-            cols.append(fc.axis[j] + [0.0] * 3)
-    return cols
-
-
-def _site_point(tree: KinematicTree, fc: _FrameComponents, site: int) -> list:
-    b = int(tree.site_body[site])
-    local = cp.const_vec(tree.site_pos[site])
     if b < 0:
-        return local
-    return cp.vec_add(fc.body_pos[b], cp.mat_vec(fc.body_rot[b], local))
+        return jnp.asarray(tree.site_pos[site]), jnp.asarray(tree.site_rot[site])
+    return _point_on_body(frames, b, tree.site_pos[site]), frames.rot[b] @ tree.site_rot[site]
 
 
 def site_jacobian(tree: KinematicTree, q: jax.Array, site: int) -> jax.Array:
     """(6, nv) Jacobian of site ``site``, world-aligned: rows vx, vy, vz, wx, wy, wz."""
-    fc = _frame_components(tree, q)
-    cols = _jacobian_components(tree, fc, int(tree.site_body[site]), _site_point(tree, fc, site))
-    like = q[0]
-    lin = jnp.stack([cp.stack_vec(col[:3], like) for col in cols], -1)
-    ang = jnp.stack([cp.stack_vec(col[3:], like) for col in cols], -1)
-    return jnp.concatenate([lin, ang], -2)
+    frames = forward_kinematics(tree, q)
+    body = int(tree.site_body[site])
+    if body < 0:
+        return jnp.zeros((6, tree.nv))
+    point = _point_on_body(frames, body, tree.site_pos[site])
+    mask = tree.moves[:, body].astype(float)[:, None]
+    lin = jnp.where(
+        tree.is_hinge[:, None], jnp.cross(frames.axis, point - frames.anchor), frames.axis
+    )
+    ang = frames.axis * tree.is_hinge[:, None]
+    return jnp.concatenate([lin * mask, ang * mask], 1).T
 
 
 def body_com(tree: KinematicTree, q: jax.Array, params: InertialParams | None = None) -> jax.Array:
@@ -228,130 +244,43 @@ def _entry(array, index):
     return array[index]
 
 
-def _world_inertia(p: InertialParams, fc: _FrameComponents, b: int) -> tuple:
-    """Body b's mass m, first moment h = m c (kg m) and inertia about the world origin (kg m^2)."""
-    m = _entry(p.mass, (b,))
-    com = [_entry(p.com, (b, k)) for k in range(3)]
-    inertia = [[_entry(p.inertia, (b, i, k)) for k in range(3)] for i in range(3)]
-    rot = fc.body_rot[b]
-    c = cp.vec_add(fc.body_pos[b], cp.mat_vec(rot, com))
-    i_w = cp.mat_mat(cp.mat_mat(rot, inertia), [list(r) for r in zip(*rot, strict=True)])
-    cc = cp.dot(c, c)
-    i_o = [
-        [
-            cp.add(i_w[r][k], cp.mul(m, cp.sub(cc if r == k else 0.0, cp.mul(c[r], c[k]))))
-            for k in range(3)
-        ]
-        for r in range(3)
-    ]
-    return m, cp.scale(m, c), i_o
-
-
-def _momentum(inertia: tuple, v: list, w: list) -> tuple[list, list]:
-    """Linear momentum and angular momentum about the origin of a body moving with twist (v, w)."""
-    m, h, i_o = inertia
-    return cp.vec_add(cp.scale(m, v), cp.cross(w, h)), cp.vec_add(
-        cp.cross(h, v), cp.mat_vec(i_o, w)
-    )
-
-
-def _composite(tree: KinematicTree, per_body: list) -> list:
-    """Subtree sums of per-body (m, h, I_O) tuples."""
-    comp = list(per_body)
-    for b in reversed(range(tree.nb)):
-        par = tree.parent[b]
-        if par >= 0:
-            (m1, h1, i1), (m2, h2, i2) = comp[par], comp[b]
-            summed = [
-                [cp.add(x, y) for x, y in zip(r1, r2, strict=True)]
-                for r1, r2 in zip(i1, i2, strict=True)
-            ]
-            comp[par] = (cp.add(m1, m2), cp.vec_add(h1, h2), summed)
-    return comp
-
-
-def _motion(tree: KinematicTree, fc: _FrameComponents, j: int) -> tuple[list, list]:
-    """World twist (v_O, w) of joint j's unit motion; v_O is the velocity at the world origin."""
-    if tree.is_hinge[j]:
-        return cp.cross(fc.anchor[j], fc.axis[j]), fc.axis[j]
-    return fc.axis[j], [0.0] * 3
-
-
 def mass_matrix(
     tree: KinematicTree, q: jax.Array, params: InertialParams | None = None
 ) -> jax.Array:
     """Joint-space mass matrix M(q) (nv, nv), armature included.
 
-    Composite-rigid-body algorithm in world coordinates: each subtree's mass, first moment and
-    inertia about the world origin are plain sums, and M_jk = xi_j . (I_subtree(k) xi_k) for
-    every joint j that moves the body of joint k (xi: the joints' unit twists).
+    M = sum_i m_i Jc_i^T Jc_i + Jw_i^T I_i Jw_i over bodies i, from the Jacobians of every
+    body's centre of mass (Jc) and angular velocity (Jw), as a few batched array operations.
     """
     p = _params(tree, params)
-    fc = _frame_components(tree, q)
-    comp = _composite(tree, [_world_inertia(p, fc, b) for b in range(tree.nb)])
-    xi = [_motion(tree, fc, j) for j in range(tree.nv)]
-    entries = [[0.0] * tree.nv for _ in range(tree.nv)]
-    for k in range(tree.nv):
-        b = tree.joint_body[k]
-        lin, ang = _momentum(comp[b], *xi[k])
-        for j in range(tree.nv):
-            if tree.moves[j, b] and (tree.joint_body[j] != b or j <= k):
-                value = cp.add(cp.dot(xi[j][0], lin), cp.dot(xi[j][1], ang))
-                entries[j][k] = entries[k][j] = value
-        entries[k][k] = cp.add(entries[k][k], float(tree.armature[k]))
-    return cp.pack(entries, q[0], (tree.nv, tree.nv))
-
-
-def _twist_cross(a: tuple, b: tuple) -> tuple[list, list]:
-    """Spatial motion cross product a x b of world twists (v, w)."""
-    (va, wa), (vb, wb) = a, b
-    return cp.vec_add(cp.cross(wa, vb), cp.cross(va, wb)), cp.cross(wa, wb)
+    frames = forward_kinematics(tree, q)
+    com = frames.pos + jnp.einsum("bij,bj->bi", frames.rot, p.com)
+    mask = tree.moves.T.astype(float)[:, :, None]  # (nb, nv, 1)
+    hinge = tree.is_hinge[None, :, None]
+    lin = jnp.where(
+        hinge,
+        jnp.cross(frames.axis[None, :, :], com[:, None, :] - frames.anchor[None, :, :]),
+        frames.axis[None, :, :],
+    )
+    lin = lin * mask  # (nb, nv, 3)
+    ang = frames.axis[None, :, :] * (mask * hinge)  # (nb, nv, 3)
+    inertia_w = jnp.einsum("bij,bjk,blk->bil", frames.rot, p.inertia, frames.rot)
+    m = jnp.einsum("bja,b,bka->jk", lin, p.mass, lin)
+    m = m + jnp.einsum("bja,bac,bkc->jk", ang, inertia_w, ang)
+    return m + jnp.diag(tree.armature)
 
 
 def coriolis(
     tree: KinematicTree, q: jax.Array, dq: jax.Array, params: InertialParams | None = None
 ) -> jax.Array:
-    """Coriolis and centrifugal forces C(q, dq) dq (nv,), N m or N.
+    """Coriolis and centrifugal forces C(q, dq) dq = M_dot dq - d/dq (dq^T M dq / 2) (nv,)."""
 
-    Recursive Newton-Euler with zero acceleration and gravity, in world coordinates.
-    """
-    p = _params(tree, params)
-    fc = _frame_components(tree, q)
-    xi = [_motion(tree, fc, j) for j in range(tree.nv)]
-    zero = ([0.0] * 3, [0.0] * 3)
-    vel: list = [None] * tree.nb
-    acc: list = [None] * tree.nb
-    forces: list = [None] * tree.nb
-    for b in range(tree.nb):
-        par = tree.parent[b]
-        v, a = (zero, zero) if par < 0 else (vel[par], acc[par])
-        for j in tree.body_joints[b]:
-            step = (cp.scale(dq[j], xi[j][0]), cp.scale(dq[j], xi[j][1]))
-            v = (cp.vec_add(v[0], step[0]), cp.vec_add(v[1], step[1]))
-            da = _twist_cross(v, step)  # d/dt of xi_j, times dq_j
-            a = (cp.vec_add(a[0], da[0]), cp.vec_add(a[1], da[1]))
-        vel[b], acc[b] = v, a
-        inertia = _world_inertia(p, fc, b)
-        f_a = _momentum(inertia, *a)
-        lin, ang = _momentum(inertia, *v)
-        (vv, vw) = v
-        # f = I a + v x* (I v), with v x* (f, n) = (w x f, w x n + v x f)
-        forces[b] = (
-            cp.vec_add(f_a[0], cp.cross(vw, lin)),
-            cp.vec_add(f_a[1], cp.vec_add(cp.cross(vw, ang), cp.cross(vv, lin))),
-        )
-    for b in reversed(range(tree.nb)):
-        par = tree.parent[b]
-        if par >= 0:
-            forces[par] = (
-                cp.vec_add(forces[par][0], forces[b][0]),
-                cp.vec_add(forces[par][1], forces[b][1]),
-            )
-    out = []
-    for j in range(tree.nv):
-        f = forces[tree.joint_body[j]]
-        out.append(cp.add(cp.dot(xi[j][0], f[0]), cp.dot(xi[j][1], f[1])))
-    return cp.pack(out, q[0], (tree.nv,))
+    def mfun(qq):
+        return mass_matrix(tree, qq, params)
+
+    _, mdot = jax.jvp(mfun, (q,), (dq,))
+    grad_kinetic = jax.grad(lambda qq: 0.5 * dq @ mfun(qq) @ dq)(q)
+    return mdot @ dq - grad_kinetic
 
 
 def coriolis_matrix(
