@@ -101,16 +101,6 @@ def to_array(x, like):
     return jnp.broadcast_to(x, jnp.shape(like))
 
 
-def stack_vec(v, like):
-    """(..., 3) array from a component vector."""
-    return jnp.stack([to_array(x, like) for x in v], -1)
-
-
-def stack_mat(m, like):
-    """(..., 3, 3) array from a component matrix."""
-    return jnp.stack([stack_vec(row, like) for row in m], -2)
-
-
 def pack(nested, like, shape: tuple[int, ...]):
     """One array of ``shape`` from a nested list of components, built by a single stack."""
     flat = []
