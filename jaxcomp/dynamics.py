@@ -189,12 +189,12 @@ def subtree_com(
     A subtree of zero mass reports its body's origin.
     """
     p = _params(tree, params)
-    frames = forward_kinematics(tree, q)
-    com = frames.pos + jnp.einsum("bij,bj->bi", frames.rot, p.com)
+    com = body_com(tree, q, p)
     mass = tree.subtree @ p.mass
     weighted = tree.subtree @ (p.mass[:, None] * com)
     safe = jnp.where(mass > 0, mass, 1.0)
-    return jnp.where(mass[:, None] > 0, weighted / safe[:, None], frames.pos), mass
+    origin = forward_kinematics(tree, q).pos
+    return jnp.where(mass[:, None] > 0, weighted / safe[:, None], origin), mass
 
 
 def gravity(
@@ -215,13 +215,12 @@ def gravity(
     fc = _frame_components(tree, q)
     weighted: list = [None] * tree.nb  # subtree sum of m * com, kg m
     sub_mass: list = [None] * tree.nb  # subtree mass, kg
-    for b in reversed(range(tree.nb)):
+    for b in range(tree.nb):
         m_b = _entry(p.mass, (b,))
         com_b = [_entry(p.com, (b, k)) for k in range(3)]
         c = cp.vec_add(fc.body_pos[b], cp.mat_vec(fc.body_rot[b], com_b))
-        weighted[b] = cp.scale(m_b, c)
-        sub_mass[b] = m_b
-    for b in reversed(range(tree.nb)):
+        weighted[b], sub_mass[b] = cp.scale(m_b, c), m_b
+    for b in reversed(range(tree.nb)):  # children come after their parents
         par = tree.parent[b]
         if par >= 0:
             weighted[par] = cp.vec_add(weighted[par], weighted[b])

@@ -180,15 +180,22 @@ class Robot:
             raise InputError(f"{what} contains NaN or inf at joint(s) {', '.join(bad)}")
         return jnp.asarray(arr)
 
+    @cached_property
+    def _device_defaults(self) -> tuple[InertialParams, jax.Array]:
+        """Nominal params and default gravity placed on the device once, not on every call."""
+        return self.nominal_params(), jnp.asarray(self.default_gravity)
+
     def check_gravity(self, gravity) -> jax.Array:
-        g = self.default_gravity if gravity is None else np.asarray(gravity, dtype=float)
+        if gravity is None:
+            return self._device_defaults[1]
+        g = np.asarray(gravity, dtype=float)
         if g.shape != (3,) or not np.all(np.isfinite(g)):
             raise InputError(f"gravity must be a finite vector of shape (3,) m/s^2, got {g!r}")
         return jnp.asarray(g)
 
     def check_params(self, params: InertialParams | None) -> InertialParams:
         if params is None:
-            return self.nominal_params()
+            return self._device_defaults[0]
         nb = self.tree.nb
         shapes = {"mass": (nb,), "com": (nb, 3), "inertia": (nb, 3, 3)}
         for field, shape in shapes.items():
