@@ -1,24 +1,11 @@
-"""The ``jaxcomp`` command line: the one place that wires models, hardware, identify, control."""
+"""`jaxcomp models` and `jaxcomp info`: what a robot model holds."""
 
 import json
-import sys
 
 import click
 import numpy as np
 
-from jaxcomp.errors import JaxcompError
-
-
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(package_name="jaxcomp")
-def cli() -> None:
-    """jaxcomp: compliant control of current-controlled arms without torque sensors.
-
-    Identify each joint's current/torque ratio, friction loss and the centre-of-mass errors of
-    the robot model from slow gravity-loaded sweeps, then drive the arm with a current-based
-    Cartesian impedance controller. Units are SI throughout (m, rad, N m, A) unless a column
-    says deg.
-    """
+from jaxcomp.cli.group import cli
 
 
 @cli.command()
@@ -91,18 +78,3 @@ def info(robot: str, pose: str | None, as_json: bool) -> None:
     click.echo("  the torque each joint must apply to hold the arm still, N m (N for slides)")
     for n, t in zip(r.joint_names, g + 0.0, strict=True):
         click.echo(f"  {n:<12}{t:>10.4f}")
-
-
-def main() -> None:
-    """Entry point: run the CLI; jaxcomp's own errors print one line and exit with status 2."""
-    try:
-        cli(standalone_mode=False)
-    except click.exceptions.Abort:
-        click.echo("aborted", err=True)
-        sys.exit(130)
-    except click.ClickException as exc:
-        exc.show()
-        sys.exit(exc.exit_code)
-    except JaxcompError as exc:
-        click.echo(f"error: {exc}", err=True)
-        sys.exit(2)

@@ -1,0 +1,134 @@
+"""Angle bins: a 1 kHz sweep recording reduced to per-angle means, per sweep and direction.
+
+Within a sweep the swept joint moves at constant speed and the others are held, so the
+measured current is a function of the swept angle and the direction only. Averaging the samples
+of each (sweep, direction, angle bin) keeps all the information a least-squares fit uses (each
+bin weighs as its sample count) while the fit's cost no longer grows with the sample count.
+Only steady-speed samples enter: the ramps at the ends of a sweep (acceleration, inertia) are
+left out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from jaxcomp.errors import InputError
+from jaxcomp.recording import Recording
+
+#: Default bin width, rad (1 degree).
+BIN_WIDTH = np.deg2rad(1.0)
+#: A sample is steady when its swept-joint speed is at least this fraction of the sweep's.
+STEADY_FRACTION = 0.9
+
+
+@dataclass(frozen=True)
+class SweepBins:
+    """Per-bin means of a recording; B bins, n joints.
+
+    Attributes:
+        sweep: (B,) int, index of the sweep (a contiguous run of one swept joint).
+        joint: (B,) int, the swept joint. direction: (B,) int, +1 or -1.
+        index: (B,) int, angle bin number: floor(q[joint] / width).
+        count: (B,) samples averaged.
+        q: (B, n) rad, dq: (B, n) rad/s, current: (B, n) A, means over the bin.
+        gravity: (3,) m/s^2, base frame. payload_mass kg, payload_com (3,) m (EE frame).
+        width: bin width, rad.
+    """
+
+    sweep: np.ndarray
+    joint: np.ndarray
+    direction: np.ndarray
+    index: np.ndarray
+    count: np.ndarray
+    q: np.ndarray
+    dq: np.ndarray
+    current: np.ndarray
+    gravity: np.ndarray
+    payload_mass: float
+    payload_com: np.ndarray
+    width: float
+
+    @property
+    def n_bins(self) -> int:
+        return self.count.shape[0]
+
+    @property
+    def swept_current(self) -> np.ndarray:
+        """(B,) A, mean current of the swept joint of each bin."""
+        return self.current[np.arange(self.n_bins), self.joint]
+
+
+def sweep_ids(joint: np.ndarray) -> np.ndarray:
+    """(N,) int: index of the contiguous sweep each sample belongs to (-1 outside sweeps)."""
+    start = np.r_[True, joint[1:] != joint[:-1]]
+    ids = np.cumsum(start & (joint >= 0)) - 1
+    return np.where(joint >= 0, ids, -1)
+
+
+def steady(rec: Recording, fraction: float = STEADY_FRACTION) -> np.ndarray:
+    """(N,) bool: swept samples moving in their direction at >= ``fraction`` of the sweep speed.
+
+    The sweep speed is the median swept-joint speed of the sweep's samples in that direction.
+    """
+    ids = sweep_ids(rec.joint)
+    swept = ids >= 0
+    rows = np.flatnonzero(swept)
+    speed = np.zeros(rec.n_samples)
+    speed[rows] = rec.dq[rows, rec.joint[rows]] * rec.direction[rows]
+    keep = np.zeros(rec.n_samples, bool)
+    key = ids * 2 + (rec.direction > 0)
+    for k in np.unique(key[swept]):
+        sel = swept & (key == k)
+        ref = np.median(speed[sel])
+        if ref > 0:
+            keep |= sel & (speed >= fraction * ref)
+    return keep
+
+
+def bin_sweeps(
+    rec: Recording, width: float = BIN_WIDTH, fraction: float = STEADY_FRACTION
+) -> SweepBins:
+    """Average the steady samples of ``rec`` into angle bins of ``width`` rad."""
+    if not width > 0:
+        raise InputError(f"bin width must be > 0 rad, got {width}")
+    keep = steady(rec, fraction)
+    if not keep.any():
+        raise InputError(
+            "the recording has no steady sweep samples (the swept joint never moves at a "
+            "constant speed in its direction)"
+        )
+    rows = np.flatnonzero(keep)
+    ids = sweep_ids(rec.joint)[rows]
+    joint = rec.joint[rows]
+    direction = rec.direction[rows]
+    index = np.floor(rec.q[rows, joint] / width).astype(np.int64)
+    keys = np.stack([ids, direction, index], axis=1)
+    uniq, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    count = np.bincount(inverse)
+    n = rec.n_joints
+
+    def mean(values: np.ndarray) -> np.ndarray:
+        return (
+            np.stack([np.bincount(inverse, values[:, k], len(uniq)) for k in range(n)], axis=1)
+            / count[:, None]
+        )
+
+    first = np.zeros(len(uniq), np.int64)
+    first[inverse[::-1]] = np.arange(len(rows))[::-1]
+    return SweepBins(
+        sweep=uniq[:, 0],
+        joint=joint[first],
+        direction=uniq[:, 1],
+        index=uniq[:, 2],
+        count=count,
+        q=mean(rec.q[rows]),
+        dq=mean(rec.dq[rows]),
+        current=mean(rec.current[rows]),
+        gravity=np.asarray(rec.gravity, float),
+        payload_mass=float(rec.payload_mass),
+        payload_com=np.asarray(rec.payload_com, float),
+        width=float(width),
+    )

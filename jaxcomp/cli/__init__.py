@@ -1,0 +1,10 @@
+"""The ``jaxcomp`` command line: the one place that wires models, hardware, identify, control.
+
+Each command is a module of this package registering itself on ``cli`` (``group.py``); importing
+the package imports them all. Heavy imports happen inside the commands, so ``--help`` is quick.
+"""
+
+from jaxcomp.cli import info  # noqa: F401  (registers the commands)
+from jaxcomp.cli.group import cli, main
+
+__all__ = ["cli", "main"]

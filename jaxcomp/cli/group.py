@@ -1,0 +1,34 @@
+"""The ``jaxcomp`` command group and its entry point; each command lives in its own module."""
+
+import sys
+
+import click
+
+from jaxcomp.errors import JaxcompError
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="jaxcomp")
+def cli() -> None:
+    """jaxcomp: compliant control of current-controlled arms without torque sensors.
+
+    Identify each joint's current/torque ratio, friction loss and the centre-of-mass errors of
+    the robot model from slow gravity-loaded sweeps, then drive the arm with a current-based
+    Cartesian impedance controller. Units are SI throughout (m, rad, N m, A) unless a column
+    says deg.
+    """
+
+
+def main() -> None:
+    """Entry point: run the CLI; jaxcomp's own errors print one line and exit with status 2."""
+    try:
+        cli(standalone_mode=False)
+    except click.exceptions.Abort:
+        click.echo("aborted", err=True)
+        sys.exit(130)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    except JaxcompError as exc:
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(2)

@@ -1,0 +1,429 @@
+"""Recordings: the ``.npz`` format that calibration writes and identification reads.
+
+One ``.npz``, SI units, n = the robot's current-controlled joints:
+
+- ``t`` (N,) s, increasing; ``q`` (N, n) rad; ``dq`` (N, n) rad/s; ``current`` (N, n) A;
+- ``joint`` (N,) int, index of the swept joint (-1 outside sweeps);
+- ``direction`` (N,) int, +1 or -1 (0 outside sweeps);
+- ``model`` str, a built-in robot name or a path to an MJCF or URDF file;
+- optional ``gravity`` (3,) m/s^2 in the base frame (default (0, 0, -9.81));
+- optional ``payload_mass`` kg and ``payload_com`` (3,) m in the end-effector frame.
+
+Any further array whose first axis has length N (the controller adds ``target``, ``ee``,
+``base``, ``command``) is kept in ``Recording.extra``. Loading validates everything and raises
+one ``InputError`` naming the field; nothing is silently dropped.
+
+``RecordingWriter`` writes a recording incrementally: samples go to numbered part files in
+``<path>.parts/`` (each written atomically, at least every ``flush_every`` samples), grouped
+into segments; ``close()`` joins them into ``<path>`` atomically. After a crash,
+``RecordingWriter(path, ..., resume=True)`` keeps every completed segment, and
+``recover(path)`` joins whatever was written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from jaxcomp.errors import InputError, JaxcompError
+from jaxcomp.robot import Robot, load_robot
+from jaxcomp.robot_params import arm_joint_indices, write_json_atomic
+
+STANDARD_GRAVITY = (0.0, 0.0, -9.81)
+_ARRAYS = ("t", "q", "dq", "current", "joint", "direction")
+_OPTIONAL = ("gravity", "payload_mass", "payload_com")
+#: |q| beyond this (rad) cannot be an angle in radians of a revolute arm joint.
+_MAX_ANGLE = 2 * np.pi + 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class Recording:
+    """A validated recording (see the module docstring for fields and units)."""
+
+    t: np.ndarray
+    q: np.ndarray
+    dq: np.ndarray
+    current: np.ndarray
+    joint: np.ndarray
+    direction: np.ndarray
+    model: str
+    gravity: np.ndarray = field(default_factory=lambda: np.array(STANDARD_GRAVITY))
+    payload_mass: float = 0.0
+    payload_com: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n_samples(self) -> int:
+        return self.t.shape[0]
+
+    @property
+    def n_joints(self) -> int:
+        return self.q.shape[1]
+
+    def robot(self) -> Robot:
+        """The robot model named by ``model``."""
+        return load_robot(self.model)
+
+    def to_arrays(self) -> dict[str, Any]:
+        """The ``.npz`` contents (all fields, extras included)."""
+        out: dict[str, Any] = {k: getattr(self, k) for k in _ARRAYS}
+        out.update(
+            model=np.array(self.model),
+            gravity=self.gravity,
+            payload_mass=np.array(self.payload_mass),
+            payload_com=self.payload_com,
+        )
+        out.update(self.extra)
+        return out
+
+    def save(self, path: str | Path) -> Path:
+        """Write the ``.npz`` atomically (temp file + rename)."""
+        return _save_npz(path, self.to_arrays())
+
+    def select(self, mask: np.ndarray) -> Recording:
+        """The samples where ``mask`` (N,) is true, same metadata."""
+        pick = {k: getattr(self, k)[mask] for k in _ARRAYS}
+        extra = {k: v[mask] for k, v in self.extra.items()}
+        return Recording(
+            **pick,
+            model=self.model,
+            gravity=self.gravity,
+            payload_mass=self.payload_mass,
+            payload_com=self.payload_com,
+            extra=extra,
+        )
+
+
+def _save_npz(path: str | Path, arrays: Mapping[str, Any]) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.npz", dir=path.parent)
+    os.close(fd)
+    try:
+        np.savez(tmp, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _numeric(data: Mapping, name: str, shape: tuple, kind: str = "float") -> np.ndarray:
+    """Field ``name`` as an array of ``shape`` (None = any length), finite."""
+    try:
+        arr = np.asarray(data[name])
+    except KeyError:
+        raise InputError(f"recording field {name!r} is missing") from None
+    if arr.dtype.kind not in "biuf":
+        raise InputError(f"recording field {name!r} must be numeric, got dtype {arr.dtype}")
+    want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+    if arr.ndim != len(shape) or any(
+        s is not None and a != s for a, s in zip(arr.shape, shape, strict=False)
+    ):
+        raise InputError(f"recording field {name!r} must have shape {want}, got {arr.shape}")
+    if kind == "int":
+        if arr.dtype.kind == "f":
+            if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
+                raise InputError(f"recording field {name!r} must hold integers")
+        return arr.astype(np.int64)
+    arr = arr.astype(np.float64)
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        first = np.argwhere(bad)[0].tolist()
+        raise InputError(
+            f"recording field {name!r} has {int(bad.sum())} NaN/inf value(s), first at index "
+            f"{first if len(first) > 1 else first[0]}"
+        )
+    return arr
+
+
+def _degrees_hint(name: str, arr: np.ndarray, limit: float, unit: str) -> None:
+    peak = float(np.abs(arr).max()) if arr.size else 0.0
+    if peak > limit:
+        raise InputError(
+            f"recording field {name!r} reaches {peak:.4g}, beyond {limit:.3g} {unit}: it looks "
+            f"like degrees; the format wants {unit}"
+        )
+
+
+def validate(data: Mapping[str, Any], source: str = "recording") -> Recording:
+    """A ``Recording`` from a mapping of fields (e.g. an opened ``.npz``), fully checked."""
+    try:
+        return _validate(data)
+    except JaxcompError as exc:
+        raise type(exc)(f"{source}: {exc}") from None
+
+
+def _validate(data: Mapping[str, Any]) -> Recording:
+    if "model" not in data:
+        raise InputError("recording field 'model' is missing")
+    model = np.asarray(data["model"])
+    if model.dtype.kind not in "US" or model.ndim != 0 or not str(model):
+        raise InputError("recording field 'model' must be a non-empty string")
+    model = str(model)
+    robot = load_robot(model)
+    n = len(arm_joint_indices(robot))
+    t = _numeric(data, "t", (None,))
+    N = t.shape[0]
+    if N < 2:
+        raise InputError(f"recording field 't' has {N} sample(s): the recording is empty")
+    q = _numeric(data, "q", (N, n))
+    dq = _numeric(data, "dq", (N, n))
+    current = _numeric(data, "current", (N, n))
+    joint = _numeric(data, "joint", (N,), "int")
+    direction = _numeric(data, "direction", (N,), "int")
+    if np.any(np.diff(t) <= 0):
+        i = int(np.flatnonzero(np.diff(t) <= 0)[0])
+        raise InputError(f"recording field 't' must increase; it does not at index {i + 1}")
+    hinge = np.asarray(robot.tree.is_hinge)[arm_joint_indices(robot)]
+    _degrees_hint("q", q[:, hinge], _MAX_ANGLE, "rad")
+    steps = np.diff(q[:, hinge], axis=0)
+    moved = np.abs(steps).sum()
+    if moved > 0:
+        # dq in deg/s shows as |dq| ~57x the finite-difference velocity of q
+        fd = np.abs(steps / np.diff(t)[:, None]).sum()
+        ratio = np.abs(0.5 * (dq[1:, hinge] + dq[:-1, hinge])).sum() / max(fd, 1e-300)
+        if 20 < ratio < 200:
+            raise InputError(
+                f"recording field 'dq' is {ratio:.0f}x the rate of change of q: it looks like "
+                "degrees per second; the format wants rad/s"
+            )
+    bad = (joint < -1) | (joint >= n)
+    if bad.any():
+        raise InputError(
+            f"recording field 'joint' must be -1 or a joint index 0..{n - 1}; "
+            f"found {int(joint[bad][0])} at index {int(np.flatnonzero(bad)[0])}"
+        )
+    if np.any(~np.isin(direction, (-1, 0, 1))):
+        raise InputError("recording field 'direction' must hold only +1, -1 or 0")
+    mismatch = (joint >= 0) != (direction != 0)
+    if mismatch.any():
+        raise InputError(
+            "recording fields 'joint' and 'direction' disagree at index "
+            f"{int(np.flatnonzero(mismatch)[0])}: a swept sample (joint >= 0) needs direction "
+            "+1 or -1, a sample outside sweeps (joint -1) direction 0"
+        )
+    if not np.any(joint >= 0):
+        raise InputError("recording has no sweep: field 'joint' is -1 everywhere")
+    gravity = _numeric(data, "gravity", (3,)) if "gravity" in data else np.array(STANDARD_GRAVITY)
+    g = float(np.linalg.norm(gravity))
+    if not 1.0 < g < 30.0:
+        raise InputError(f"recording field 'gravity' has norm {g:.4g} m/s^2; expected about 9.81")
+    payload_mass = float(_numeric(data, "payload_mass", ())) if "payload_mass" in data else 0.0
+    if payload_mass < 0:
+        raise InputError(f"recording field 'payload_mass' must be >= 0 kg, got {payload_mass}")
+    payload_com = _numeric(data, "payload_com", (3,)) if "payload_com" in data else np.zeros(3)
+    if np.abs(payload_com).max() > 2.0:
+        raise InputError(
+            f"recording field 'payload_com' is {payload_com.tolist()} m; beyond 2 m from the "
+            "end effector (millimetres?)"
+        )
+    extra = {}
+    for key in data:
+        if key in _ARRAYS or key in _OPTIONAL or key == "model":
+            continue
+        arr = np.asarray(data[key])
+        if arr.ndim == 0 or arr.shape[0] != N:
+            raise InputError(
+                f"recording field {key!r} is not part of the format and is not per sample "
+                f"(shape {arr.shape}, expected first axis {N})"
+            )
+        if arr.dtype.kind in "f" and not np.all(np.isfinite(arr)):
+            raise InputError(f"recording field {key!r} has NaN/inf values")
+        extra[key] = arr
+    return Recording(
+        t=t,
+        q=q,
+        dq=dq,
+        current=current,
+        joint=joint,
+        direction=direction,
+        model=model,
+        gravity=gravity,
+        payload_mass=payload_mass,
+        payload_com=payload_com,
+        extra=extra,
+    )
+
+
+def load_recording(path: str | Path) -> Recording:
+    """Read and validate a recording ``.npz``; ``InputError`` naming the problem otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"recording not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            data = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, EOFError) as exc:
+        raise InputError(f"{path}: not a readable .npz recording ({exc})") from None
+    except Exception as exc:  # zipfile.BadZipFile and friends from a truncated file
+        raise InputError(f"{path}: not a readable .npz recording ({exc})") from None
+    return validate(data, str(path))
+
+
+# --------------------------------------------------------------------- incremental writing
+class RecordingWriter:
+    """Write a recording incrementally (see the module docstring).
+
+    Args:
+        path: the final ``.npz``.
+        model: ``model`` field; n: current-controlled joints.
+        gravity, payload_mass, payload_com: optional metadata (format units).
+        extra: {name: per-sample shape} of additional arrays (e.g. ``{"ee": (3,)}``).
+        flush_every: samples per part file (1000 = one second at 1 kHz).
+        resume: keep the completed segments of an earlier, interrupted writer of ``path``;
+            otherwise existing parts are discarded.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        model: str,
+        n: int,
+        *,
+        gravity=None,
+        payload_mass: float | None = None,
+        payload_com=None,
+        extra: Mapping[str, tuple] | None = None,
+        flush_every: int = 1000,
+        resume: bool = False,
+    ):
+        self.path = Path(path)
+        self.parts = self.path.with_name(self.path.name + ".parts")
+        self.meta = {"model": str(model), "n": int(n), "extra": {}}
+        if gravity is not None:
+            self.meta["gravity"] = np.asarray(gravity, float).tolist()
+        if payload_mass is not None:
+            self.meta["payload_mass"] = float(payload_mass)
+        if payload_com is not None:
+            self.meta["payload_com"] = np.asarray(payload_com, float).tolist()
+        self.meta["extra"] = {k: list(v) for k, v in (extra or {}).items()}
+        self.flush_every = int(flush_every)
+        self.completed: list[Any] = []
+        self._files: list[str] = []  # part files of completed segments
+        self._open: list[str] = []  # part files of the open segment
+        self._segment: Any = None
+        self._buf: dict[str, list] = {k: [] for k in self._fields()}
+        self._count = 0
+        if resume and (self.parts / "manifest.json").is_file():
+            manifest = json.loads((self.parts / "manifest.json").read_text())
+            if manifest["meta"] != json.loads(json.dumps(self.meta)):
+                raise InputError(
+                    f"cannot resume {self.path}: it was started with different settings "
+                    f"({manifest['meta']})"
+                )
+            self.completed = manifest["completed"]
+            self._files = manifest["files"]
+            for f in self.parts.glob("part-*.npz"):
+                if f.name not in self._files:
+                    f.unlink()  # samples of an unfinished segment
+        else:
+            shutil.rmtree(self.parts, ignore_errors=True)
+        self.parts.mkdir(parents=True, exist_ok=True)
+        self._write_manifest()
+
+    def _fields(self) -> list[str]:
+        return list(_ARRAYS) + list(self.meta["extra"])
+
+    @property
+    def samples(self) -> int:
+        """Samples written or buffered so far (completed segments and the open one)."""
+        return self._count
+
+    def begin(self, segment: Any = None) -> None:
+        """Start a segment (e.g. one sweep of a plan); ``segment`` is a JSON-able label."""
+        self._segment = segment
+
+    def append(
+        self, t: float, q, dq, current, joint: int = -1, direction: int = 0, **extra
+    ) -> None:
+        """Add one sample (format units)."""
+        buf = self._buf
+        buf["t"].append(float(t))
+        buf["q"].append(np.array(q, float))
+        buf["dq"].append(np.array(dq, float))
+        buf["current"].append(np.array(current, float))
+        buf["joint"].append(int(joint))
+        buf["direction"].append(int(direction))
+        for k in self.meta["extra"]:
+            buf[k].append(np.array(extra[k], float))
+        self._count += 1
+        if len(buf["t"]) >= self.flush_every:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write buffered samples to a new part file (atomically)."""
+        if not self._buf["t"]:
+            return
+        name = f"part-{len(self._files) + len(self._open):06d}.npz"
+        _save_npz(self.parts / name, {k: np.asarray(v) for k, v in self._buf.items()})
+        self._open.append(name)
+        self._buf = {k: [] for k in self._fields()}
+        self._write_manifest()
+
+    def end(self) -> None:
+        """Finish the open segment: its samples survive a crash and count on resume."""
+        self.flush()
+        self._files.extend(self._open)
+        self._open = []
+        if self._segment is not None:
+            self.completed.append(self._segment)
+        self._segment = None
+        self._write_manifest()
+
+    def _write_manifest(self) -> None:
+        write_json_atomic(
+            self.parts / "manifest.json",
+            {
+                "meta": self.meta,
+                "completed": self.completed,
+                "files": self._files,
+                "open": self._open,
+            },
+        )
+
+    def close(self) -> Recording:
+        """End the open segment, join every part into ``path`` (validated), remove the parts."""
+        self.end()
+        rec = _join(self.parts, self._files, self.meta)
+        rec.save(self.path)
+        shutil.rmtree(self.parts, ignore_errors=True)
+        return rec
+
+
+def _join(parts: Path, files: list[str], meta: Mapping) -> Recording:
+    chunks = []
+    for name in files:
+        with np.load(parts / name) as npz:
+            chunks.append({k: npz[k] for k in npz.files})
+    if not chunks:
+        raise InputError(f"{parts}: nothing was recorded")
+    data: dict[str, Any] = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
+    data["model"] = np.array(meta["model"])
+    for key in _OPTIONAL:
+        if key in meta:
+            data[key] = np.asarray(meta[key])
+    return validate(data, str(parts))
+
+
+def recover(path: str | Path) -> Recording:
+    """Join every part file left by an interrupted ``RecordingWriter`` of ``path``.
+
+    Includes the samples of an unfinished segment (up to its last flush); writes ``path``.
+    """
+    path = Path(path)
+    parts = path.with_name(path.name + ".parts")
+    if not (parts / "manifest.json").is_file():
+        raise InputError(f"no interrupted recording to recover at {parts}")
+    manifest = json.loads((parts / "manifest.json").read_text())
+    rec = _join(parts, manifest["files"] + manifest["open"], manifest["meta"])
+    rec.save(path)
+    return rec
