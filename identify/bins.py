@@ -60,9 +60,17 @@ class SweepBins:
         return self.current[np.arange(self.n_bins), self.joint]
 
 
-def sweep_ids(joint: np.ndarray) -> np.ndarray:
-    """(N,) int: index of the contiguous sweep each sample belongs to (-1 outside sweeps)."""
-    start = np.r_[True, joint[1:] != joint[:-1]]
+def sweep_ids(joint: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """(N,) int: index of the sweep each sample belongs to (-1 outside sweeps).
+
+    A sweep is a contiguous run of one swept joint holding one pass in each direction: a run
+    that reverses more than once (several sweeps recorded back to back) is split.
+    """
+    run_start = np.r_[True, joint[1:] != joint[:-1]]
+    turn = np.r_[False, direction[1:] != direction[:-1]] & ~run_start
+    turns = np.cumsum(turn)
+    turns_in_run = turns - np.maximum.accumulate(np.where(run_start, turns, 0))
+    start = run_start | (turn & (turns_in_run % 2 == 0))
     ids = np.cumsum(start & (joint >= 0)) - 1
     return np.where(joint >= 0, ids, -1)
 
@@ -72,7 +80,7 @@ def steady(rec: Recording, fraction: float = STEADY_FRACTION) -> np.ndarray:
 
     The sweep speed is the median swept-joint speed of the sweep's samples in that direction.
     """
-    ids = sweep_ids(rec.joint)
+    ids = sweep_ids(rec.joint, rec.direction)
     swept = ids >= 0
     rows = np.flatnonzero(swept)
     speed = np.zeros(rec.n_samples)
@@ -100,29 +108,33 @@ def bin_sweeps(
             "constant speed in its direction)"
         )
     rows = np.flatnonzero(keep)
-    ids = sweep_ids(rec.joint)[rows]
+    ids = sweep_ids(rec.joint, rec.direction)[rows]
     joint = rec.joint[rows]
     direction = rec.direction[rows]
     index = np.floor(rec.q[rows, joint] / width).astype(np.int64)
-    keys = np.stack([ids, direction, index], axis=1)
-    uniq, inverse = np.unique(keys, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    count = np.bincount(inverse)
+    # dense key (sweep, direction, angle bin) -> bincount, no sort
+    lo = index.min()
+    span = int(index.max() - lo + 1)
+    key = ((ids * 2 + (direction > 0)) * span + (index - lo)).astype(np.int64)
+    count_all = np.bincount(key)
+    used = np.flatnonzero(count_all)
+    slot = np.zeros(count_all.shape[0], np.int64)
+    slot[used] = np.arange(used.size)
+    inverse = slot[key]
+    count = count_all[used]
     n = rec.n_joints
 
     def mean(values: np.ndarray) -> np.ndarray:
-        return (
-            np.stack([np.bincount(inverse, values[:, k], len(uniq)) for k in range(n)], axis=1)
-            / count[:, None]
-        )
+        sums = [np.bincount(inverse, values[:, k], used.size) for k in range(n)]
+        return np.stack(sums, axis=1) / count[:, None]
 
-    first = np.zeros(len(uniq), np.int64)
+    first = np.zeros(used.size, np.int64)
     first[inverse[::-1]] = np.arange(len(rows))[::-1]
     return SweepBins(
-        sweep=uniq[:, 0],
+        sweep=ids[first],
         joint=joint[first],
-        direction=uniq[:, 1],
-        index=uniq[:, 2],
+        direction=direction[first],
+        index=index[first],
         count=count,
         q=mean(rec.q[rows]),
         dq=mean(rec.dq[rows]),

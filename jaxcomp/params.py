@@ -3,6 +3,7 @@
 from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 
 
 class InertialParams(NamedTuple):
@@ -20,3 +21,25 @@ class InertialParams(NamedTuple):
     mass: jax.Array
     com: jax.Array
     inertia: jax.Array
+
+
+def add_point_mass(params: InertialParams, body: int, mass, point) -> InertialParams:
+    """``params`` with a point mass (kg) fixed to link ``body`` at ``point`` (3,) m, link frame.
+
+    The link's mass, centre of mass and rotational inertia (about the new centre of mass, by
+    the parallel-axis theorem) become those of the link and the point mass together. Pure and
+    jit/grad-able; a zero mass leaves the params unchanged.
+    """
+    mass_all, com_all = jnp.asarray(params.mass), jnp.asarray(params.com)
+    inertia_all = jnp.asarray(params.inertia)
+    m0, c0, point = mass_all[body], com_all[body], jnp.asarray(point)
+    total = m0 + mass
+    com = (m0 * c0 + mass * point) / total
+
+    def steiner(m, d):
+        return m * (jnp.dot(d, d) * jnp.eye(3) - jnp.outer(d, d))
+
+    inertia = inertia_all[body] + steiner(m0, c0 - com) + steiner(mass, point - com)
+    return InertialParams(
+        mass_all.at[body].set(total), com_all.at[body].set(com), inertia_all.at[body].set(inertia)
+    )

@@ -18,7 +18,7 @@ from jaxcomp import dynamics
 from jaxcomp.errors import InputError, ModelError
 from jaxcomp.kinematic_tree import KinematicTree, tree_from_mujoco
 from jaxcomp.models import BUILTIN
-from jaxcomp.params import InertialParams
+from jaxcomp.params import InertialParams, add_point_mass
 
 
 def builtin_models() -> list[str]:
@@ -145,6 +145,26 @@ class Robot:
                 f"unknown pose {name!r} for {self.name}; known: {', '.join(self.named_poses)}"
             )
         return self.named_poses[name].copy()
+
+    @property
+    def end_effector(self) -> str:
+        """Name of the end-effector site (custom text ``jaxcomp_end_effector``, else
+        ``end_effector``)."""
+        return self.custom_text("jaxcomp_end_effector") or "end_effector"
+
+    @property
+    def actuator_types(self) -> tuple[str, ...] | None:
+        """Actuator type label of each current-controlled joint (custom text
+        ``jaxcomp_actuator_types``, whitespace-separated), or None when the model has none."""
+        text = self.custom_text("jaxcomp_actuator_types")
+        return tuple(text.split()) if text else None
+
+    def with_payload(self, params: InertialParams, mass, com) -> InertialParams:
+        """``params`` plus a point payload of ``mass`` kg at ``com`` (3,) m in the
+        end-effector site's frame, merged into the site's link."""
+        s = self.site_index(self.end_effector)
+        point = self.tree.site_pos[s] + self.tree.site_rot[s] @ jnp.asarray(com)
+        return add_point_mass(params, int(self.tree.site_body[s]), mass, point)
 
     def link_index(self, link: str) -> int:
         """Index of a link (body) by name."""

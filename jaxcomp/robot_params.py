@@ -13,7 +13,8 @@ JSON layout::
 
     {"model": "gen3_lite", "ratio": [...], "friction": [...],
      "com_offset": {"ARM": [dx, dy, dz], ...}, "phase_shift": [...] | null,
-     "std": {"ratio": [...], ...} | null, "method": "...", "fit_seconds": 12.3 | null}
+     "std": {"ratio": [...], ...} | null, "method": "...", "fit_seconds": 12.3 | null,
+     "diagnostics": {...} | null}
 
 Unknown keys are ignored, so a file may carry extra fields (the simulator's truth adds its
 noise level).
@@ -76,6 +77,8 @@ class RobotParams:
         std: standard errors, {field: same structure as the field} or None.
         method: how the params were obtained ("nominal", "truth", a fit method ...).
         fit_seconds: wall time of the fit, s, or None.
+        diagnostics: what the fit reports besides the estimates (iterations, identifiability,
+            which ratios came from a prior or a type mean ...), or None.
     """
 
     model: str
@@ -86,6 +89,7 @@ class RobotParams:
     std: dict | None = None
     method: str = "nominal"
     fit_seconds: float | None = None
+    diagnostics: dict | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.model, str) or not self.model:
@@ -115,6 +119,8 @@ class RobotParams:
             if not math.isfinite(fs) or fs < 0:
                 raise InputError(f"fit_seconds must be a finite number >= 0, got {fs}")
             self.fit_seconds = fs
+        if self.diagnostics is not None and not isinstance(self.diagnostics, Mapping):
+            raise InputError(f"diagnostics must be a mapping or null, got {self.diagnostics!r}")
         if not isinstance(self.method, str):
             raise InputError(f"method must be a string, got {self.method!r}")
 
@@ -175,6 +181,7 @@ class RobotParams:
             "std": _jsonable(self.std),
             "method": self.method,
             "fit_seconds": self.fit_seconds,
+            "diagnostics": _jsonable(self.diagnostics),
         }
 
     def to_json(self) -> str:
@@ -197,6 +204,7 @@ class RobotParams:
             std=data.get("std"),
             method=data.get("method", "unknown"),
             fit_seconds=data.get("fit_seconds"),
+            diagnostics=data.get("diagnostics"),
         )
         return params.check(robot) if robot is not None else params
 

@@ -1,0 +1,559 @@
+"""The joint fit: ratio, friction and centre-of-mass offsets of all joints at once, in JAX.
+
+Model (paper Eq. 13 with the gravity model of ``jaxcomp.dynamics``): in a steady sweep of
+joint j in direction d the measured current is
+
+    c = r_j tau_j(q; delta) + l_j d,      tau_j(q; delta) = tau0_j(q) + a_j(q) . delta
+
+where tau is the gravity torque the actuator holds (N m), r_j the current/torque ratio
+(A/(N m)), l_j the friction loss (A) and delta the centre-of-mass offsets (m, each moving
+link's own frame) of every link. Gravity torque is linear in the offsets, so tau0 and the
+regressor a are evaluated once per angle bin (``identify.bins``), and the least-squares loss
+over all bins of all sweeps reduces to per-joint sufficient statistics (a 2 + 3L square matrix
+per joint): a Gauss-Newton / Levenberg-Marquardt iteration costs the same for 10^3 or 10^6
+samples.
+
+What the data cannot determine is handled explicitly:
+- offsets: a Gaussian prior toward the nominal model, ``PRIOR_COM`` m per component; directions
+  no sweep excites (e.g. along a joint axis) stay at the nominal COM;
+- ratios: masses stay nominal, so r is the ratio relative to the nominal mass scale (a uniform
+  mass error shows as a ratio error, the gravity current the controller needs stays right); a
+  joint whose swept gravity torque stays below ``EXCITATION`` N m RMS (joint 0 of an upright
+  arm) gets the mean ratio of the excited joints of its actuator type (the paper's rule; the
+  nominal ratio when none is excited) through a tie of relative width ``TIE``; a weak prior of
+  relative width ``PRIOR_RATIO`` toward the nominal ratio keeps the problem well posed.
+Standard errors come from the Gauss-Newton Hessian with the noise variance estimated from the
+residuals (Cramer-Rao bound); the singular values of the scaled Fisher information report the
+identifiability.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from jaxcomp import dynamics
+from jaxcomp.errors import InputError, JaxcompError
+from jaxcomp.identify.moments import SweepMoments, sweep_moments
+from jaxcomp.recording import Recording
+from jaxcomp.robot import Robot, load_robot
+from jaxcomp.robot_params import RobotParams, arm_joint_indices
+
+#: Prior standard deviation of each COM offset component, m.
+PRIOR_COM = 0.02
+#: Prior relative standard deviation of each ratio around the nominal ratio.
+PRIOR_RATIO = 1.0
+#: Relative width of the tie of an unexcited joint's ratio to its actuator type's mean.
+TIE = 1e-4
+#: RMS swept gravity torque (N m) below which gravity does not excite a joint.
+EXCITATION = 0.05
+#: Scales that make the parameters comparable for the identifiability report.
+_COM_SCALE = 1e-3  # m: offsets in mm
+
+
+class FitError(JaxcompError):
+    """The fit did not converge or produced non-finite parameters."""
+
+
+class Stats(NamedTuple):
+    """Per-joint sufficient statistics of the least squares (F = K + 2 features).
+
+    S (n, F, F) = sum phi phi^T, s (n, F) = sum phi c, c2 (n,) = sum c^2 over the steady
+    samples of each joint's sweeps, with phi = [tau0, reg, d]; samples (n,);
+    torque2 (n,) = sum tau0^2, N^2 m^2 (excitation).
+    """
+
+    S: jax.Array
+    s: jax.Array
+    c2: jax.Array
+    samples: jax.Array
+    torque2: jax.Array
+
+    @property
+    def excitation(self) -> jax.Array:
+        """(n,) N m, RMS nominal gravity torque of each joint over its sweeps."""
+        return jnp.sqrt(self.torque2 / jnp.maximum(self.samples, 1.0))
+
+    def __add__(self, other: Stats) -> Stats:  # type: ignore[override]
+        return Stats(*(a + b for a, b in zip(self, other, strict=True)))
+
+
+class Solution(NamedTuple):
+    """Result of ``solve`` (device arrays; vmapped fits have a leading batch axis)."""
+
+    ratio: jax.Array
+    friction: jax.Array
+    com: jax.Array  # (K,) m
+    cov: jax.Array  # (P, P) covariance of [ratio, friction, com]
+    sigma: jax.Array  # A, noise standard deviation estimated from the residuals
+    singular: jax.Array  # (P,) singular values of the scaled Fisher information
+    excited: jax.Array  # (n,) bool
+    iterations: jax.Array
+    converged: jax.Array
+    rss: jax.Array  # weighted residual sum of squares, A^2
+
+
+@dataclass(frozen=True, eq=False)
+class FitModel:
+    """What a fit needs of the robot: jitted regressors and the moving links.
+
+    Built once per robot (``fit_model``); its jitted functions are shared by every fit.
+    """
+
+    robot: Robot
+    joints: np.ndarray  # indices of the current-controlled joints in the robot's joints
+    links: tuple[str, ...]  # links whose COM offset is fitted
+    link_ids: np.ndarray
+    ratio0: np.ndarray
+    types: tuple[str, ...]
+
+    @property
+    def n(self) -> int:
+        return len(self.joints)
+
+    @property
+    def K(self) -> int:
+        return 3 * len(self.links)
+
+    def parameter_names(self) -> list[str]:
+        names = [f"ratio[{j}]" for j in range(self.n)]
+        names += [f"friction[{j}]" for j in range(self.n)]
+        names += [f"com_offset[{link}].{ax}" for link in self.links for ax in "xyz"]
+        return names
+
+
+_MODELS: dict[str, FitModel] = {}
+
+
+def fit_model(robot: Robot | str) -> FitModel:
+    """The ``FitModel`` of a robot (cached by model name and source)."""
+    robot = load_robot(robot)
+    key = f"{robot.name}:{robot.source}"
+    if key not in _MODELS:
+        joints = arm_joint_indices(robot)
+        tree = robot.tree
+        moved = np.asarray(tree.moves)[joints].any(axis=0)
+        mass = np.asarray(robot.nominal_params().mass)
+        ids = np.flatnonzero(moved & (mass > 0))
+        types = robot.actuator_types or tuple(f"joint{j}" for j in range(len(joints)))
+        if len(types) != len(joints):
+            raise InputError(
+                f"{robot.name}: jaxcomp_actuator_types lists {len(types)} types for "
+                f"{len(joints)} joints"
+            )
+        _MODELS[key] = FitModel(
+            robot=robot,
+            joints=joints,
+            links=tuple(tree.body_names[i] for i in ids),
+            link_ids=ids,
+            ratio0=RobotParams.nominal(robot).ratio,
+            types=tuple(types),
+        )
+    return _MODELS[key]
+
+
+@partial(jax.jit, static_argnums=0)
+def _regressors(model: FitModel, q, swept, gravity, payload_mass, payload_com):
+    """tau0 (B,) and d tau / d delta (B, K) of the swept joint of each bin."""
+    robot = model.robot
+    tree = robot.tree
+    nominal = robot.nominal_params()
+
+    def tau(delta, qa, j):
+        # the offset moves the link's own mass; a payload is merged in after it
+        com = nominal.com.at[model.link_ids].add(delta.reshape(-1, 3))
+        params = robot.with_payload(nominal._replace(com=com), payload_mass, payload_com)
+        qf = jnp.zeros(tree.nv).at[model.joints].set(qa)
+        return dynamics.gravity(tree, qf, params, gravity)[model.joints][j]
+
+    delta0 = jnp.zeros(model.K)
+
+    def one(qa, j):
+        return tau(delta0, qa, j), jax.grad(tau)(delta0, qa, j)
+
+    return jax.vmap(one)(q, swept)
+
+
+_ANGLES = (0.0, 0.5 * np.pi, np.pi)
+
+
+@partial(jax.jit, static_argnums=0)
+def _sweep_stats(model: FitModel, m: SweepMoments) -> tuple[Stats, jax.Array]:
+    """Sufficient statistics of one recording's sweeps, and each sweep's torque coefficients.
+
+    The swept joint's tau0 and regressor are evaluated at three angles per sweep and written
+    as a sin + b cos + c; the coefficients (S, 1 + K, 3) map the moments onto the features.
+    """
+    S = m.joint.shape[0]
+    angles = jnp.asarray(_ANGLES)
+    poses = jnp.repeat(m.hold[:, None, :], 3, axis=1)
+    poses = poses.at[jnp.arange(S)[:, None], jnp.arange(3)[None, :], m.joint[:, None]].set(
+        angles[None, :]
+    )
+    joint3 = jnp.repeat(m.joint, 3)
+    t0, reg = _regressors(
+        model, poses.reshape(-1, model.n), joint3, m.gravity, m.payload_mass, m.payload_com
+    )
+    vals = jnp.concatenate([t0[:, None], reg], axis=1).reshape(S, 3, 1 + model.K)
+    at0, at90, at180 = vals[:, 0], vals[:, 1], vals[:, 2]
+    c = 0.5 * (at0 + at180)
+    coef = jnp.stack([at90 - c, 0.5 * (at0 - at180), c], axis=2)  # (S, 1 + K, 3): a, b, c
+    F = model.K + 2
+    L = jnp.zeros((S, F, 4))
+    L = L.at[:, : F - 1, :3].set(coef).at[:, F - 1, 3].set(1.0)
+    onehot = jax.nn.one_hot(m.joint, model.n, dtype=float)  # (S, n)
+    M4 = m.moments[:, :4, :4]
+    per_S = jnp.einsum("sfa,sab,sgb->sfg", L, M4, L)
+    per_s = jnp.einsum("sfa,sa->sf", L, m.moments[:, :4, 4])
+    st = Stats(
+        S=jnp.einsum("sj,sfg->jfg", onehot, per_S),
+        s=jnp.einsum("sj,sf->jf", onehot, per_s),
+        c2=onehot.T @ m.moments[:, 4, 4],
+        samples=onehot.T @ m.moments[:, 2, 2],
+        torque2=onehot.T @ per_S[:, 0, 0],
+    )
+    return st, coef
+
+
+def _beta(theta: jax.Array, n: int, K: int) -> jax.Array:
+    """(n, F) per-joint linear coefficients [r_j, r_j delta, l_j] of the features."""
+    r, l, delta = theta[:n], theta[n : 2 * n], theta[2 * n :]
+    return jnp.concatenate([r[:, None], r[:, None] * delta[None, :], l[:, None]], axis=1)
+
+
+def _rss(theta, st: Stats, n: int, K: int) -> jax.Array:
+    b = _beta(theta, n, K)
+    return jnp.sum(
+        st.c2 - 2 * jnp.einsum("jf,jf->j", b, st.s) + jnp.einsum("jf,jfg,jg->j", b, st.S, b)
+    )
+
+
+class _Priors(NamedTuple):
+    """Quadratic priors on the ratios: precision (n,), mean (n,), tie rows (n, n) and weights."""
+
+    prec: jax.Array
+    mean: jax.Array
+    tie: jax.Array
+    tie_w: jax.Array
+
+
+def _priors(st: Stats, ratio0: jax.Array, types: tuple[str, ...]) -> tuple[_Priors, jax.Array]:
+    n = ratio0.shape[0]
+    excited = st.excitation > EXCITATION
+    same = jnp.asarray([[types[i] == types[k] for k in range(n)] for i in range(n)], float)
+    donors = same * excited[None, :]
+    has = donors.sum(1) > 0
+    mean_of = donors / jnp.maximum(donors.sum(1, keepdims=True), 1.0)
+    tie = (~excited)[:, None] * (jnp.eye(n) - mean_of)
+    tie_w = jnp.where(has & ~excited, 1.0 / (TIE * ratio0) ** 2, 0.0)
+    width = jnp.where(excited | has, PRIOR_RATIO, TIE)  # no donor: stay at the nominal ratio
+    return _Priors(1.0 / (width * ratio0) ** 2, ratio0, tie, tie_w), excited
+
+
+def _inner(delta, st: Stats, pr: _Priors, sigma2):
+    """Best (r, l) (2n,) for fixed offsets ``delta`` and the objective value there.
+
+    Objective: 0.5 RSS / sigma2 + 0.5 (ratio and offset priors); linear in (r, l).
+    """
+    n = st.c2.shape[0]
+    K = delta.shape[0]
+    # beta_j = r_j e_r + l_j e_l with e_r = [1, delta, 0], e_l = [0, 0.., 1]
+    e_r = jnp.concatenate([jnp.ones(1), delta, jnp.zeros(1)])
+    e_l = jnp.zeros(K + 2).at[-1].set(1.0)
+    E = jnp.stack([e_r, e_l], axis=1)  # (F, 2)
+    M = jnp.einsum("fa,jfg,gb->jab", E, st.S, E)  # (n, 2, 2)
+    v = jnp.einsum("fa,jf->ja", E, st.s)  # (n, 2)
+    A = jnp.zeros((2 * n, 2 * n))
+    idx = jnp.arange(n)
+    for a in range(2):
+        for b in range(2):
+            A = A.at[a * n + idx, b * n + idx].set(M[:, a, b] / sigma2)
+    rhs = jnp.concatenate([v[:, 0], v[:, 1]]) / sigma2
+    A = A.at[:n, :n].add(jnp.diag(pr.prec) + pr.tie.T @ (pr.tie_w[:, None] * pr.tie))
+    rhs = rhs.at[:n].add(pr.prec * pr.mean)
+    A = A.at[n:, n:].add(jnp.eye(n) * 1e-12)  # a joint without a sweep keeps l = 0
+    x = jnp.linalg.solve(A, rhs)
+    value = (
+        0.5 * (jnp.sum(st.c2) / sigma2 - x @ rhs)
+        + 0.5 * jnp.sum(pr.prec * pr.mean**2)
+        + 0.5 * jnp.sum(delta**2) / PRIOR_COM**2
+    )
+    return x, value
+
+
+def _theta(delta, st, pr, sigma2):
+    x, _ = _inner(delta, st, pr, sigma2)
+    return jnp.concatenate([x, delta])
+
+
+@partial(jax.jit, static_argnums=(0, 2))
+def solve(model_key: tuple, st: Stats, max_iter: int = 50) -> Solution:
+    """The joint fit on sufficient statistics (pure given the statics; vmap-able).
+
+    Variable projection: ratio and friction are linear given the offsets, so they are solved
+    exactly inside; the offsets follow damped Newton steps on the reduced objective (the
+    ratio-versus-mass-scale valley of the full problem is flat there, not curved). The noise
+    variance is re-estimated from the residuals at every step. ``model_key`` = (n, K, nominal
+    ratios, actuator types), the static description of the model.
+    """
+    n, K, ratio0, types = model_key
+    ratio0 = jnp.asarray(ratio0)
+    P = 2 * n + K
+    pr, excited = _priors(st, ratio0, types)
+    dof = jnp.maximum(jnp.sum(st.samples) - P, 1.0)
+
+    def rss(delta, sigma2):
+        return _rss(_theta(delta, st, pr, sigma2), st, n, K)
+
+    def value(delta, sigma2):
+        return _inner(delta, st, pr, sigma2)[1]
+
+    grad = jax.grad(value)
+    hess = jax.hessian(value)
+
+    def step(carry):
+        delta, lam, it, done, sigma2 = carry
+        g, H = grad(delta, sigma2), hess(delta, sigma2)
+        H = 0.5 * (H + H.T)
+        cand = delta - jnp.linalg.solve(
+            H + lam * jnp.diag(jnp.abs(jnp.diag(H))) + 1e-9 * jnp.eye(K), g
+        )
+        better = value(cand, sigma2) <= value(delta, sigma2)
+        new = jnp.where(better, cand, delta)
+        moved = jnp.max(jnp.abs(cand - delta))
+        lam = jnp.where(better, lam * 0.1, lam * 10.0)
+        done = (better & (moved < 1e-10)) | (lam > 1e8)
+        return new, lam, it + 1, done, jnp.maximum(rss(new, sigma2) / dof, 1e-12)
+
+    def cont(carry):
+        return (~carry[3]) & (carry[2] < max_iter)
+
+    delta0 = jnp.zeros(K)
+    sigma2_0 = jnp.maximum(rss(delta0, 1.0) / dof, 1e-12)
+    init = (delta0, jnp.asarray(1e-4), jnp.asarray(0), jnp.asarray(False), sigma2_0)
+    delta, lam, it, done, sigma2 = jax.lax.while_loop(cont, step, init)
+    theta = _theta(delta, st, pr, sigma2)
+
+    # Fisher information of [r, l, delta] (Gauss-Newton Hessian) plus the priors
+    Bj = jax.jacfwd(lambda th: _beta(th, n, K))(theta)  # (n, F, P)
+    H_data = jnp.einsum("jfp,jfg,jgq->pq", Bj, st.S, Bj) / sigma2
+    H_prior = jnp.zeros((P, P))
+    H_prior = H_prior.at[:n, :n].add(jnp.diag(pr.prec) + pr.tie.T @ (pr.tie_w[:, None] * pr.tie))
+    H_prior = H_prior.at[2 * n :, 2 * n :].add(jnp.eye(K) / PRIOR_COM**2)
+    H_prior = H_prior.at[n : 2 * n, n : 2 * n].add(jnp.eye(n) * 1e-12)
+    cov = jnp.linalg.inv(H_data + H_prior)
+    scale = jnp.concatenate([ratio0, jnp.full(n, 0.1), jnp.full(K, _COM_SCALE)])
+    singular = jnp.linalg.svd(H_data * scale[:, None] * scale[None, :], compute_uv=False)
+    converged = done & (lam <= 1e8) & jnp.all(jnp.isfinite(theta))
+    return Solution(
+        ratio=theta[:n],
+        friction=theta[n : 2 * n],
+        com=theta[2 * n :],
+        cov=cov,
+        sigma=jnp.sqrt(sigma2),
+        singular=singular,
+        excited=excited,
+        iterations=it,
+        converged=converged,
+        rss=_rss(theta, st, n, K),
+    )
+
+
+def _key(model: FitModel) -> tuple:
+    return (model.n, model.K, tuple(float(r) for r in model.ratio0), model.types)
+
+
+_BUCKET = 8  # sweeps are padded to a multiple of this, so few shapes get compiled
+
+
+def _padded(m: SweepMoments, size: int) -> SweepMoments:
+    extra = size - m.n_sweeps
+    return m._replace(
+        joint=np.r_[m.joint, np.zeros(extra, np.int64)],
+        hold=np.concatenate([m.hold, np.zeros((extra, m.hold.shape[1]))]),
+        moments=np.concatenate([m.moments, np.zeros((extra, 5, 5))]),
+        count=np.r_[m.count, np.zeros(extra, np.int64)],
+    )
+
+
+def _bucket(n: int) -> int:
+    return -(-n // _BUCKET) * _BUCKET
+
+
+def prepare(model: FitModel, rec: Recording) -> tuple[Stats, jax.Array, SweepMoments]:
+    """Moments, sufficient statistics and torque coefficients of one recording."""
+    m = sweep_moments(rec)
+    st, coef = _sweep_stats(model, _padded(m, _bucket(m.n_sweeps)))
+    return st, coef, m
+
+
+def phase_shift(
+    model: FitModel, coef: np.ndarray, m: SweepMoments, com: np.ndarray, cov_com: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Phase shift (rad) of each joint's gravity torque over its first sweep, fitted COM
+    against nominal, and its standard error (delta method); 0 for a joint without a sweep or
+    without gravity torque. The phase of a sin + b cos is atan2(b, a) (cf. Eq. 17-19).
+    """
+    coef = np.asarray(coef)
+    phase = np.zeros(model.n)
+    std = np.zeros(model.n)
+    for j in range(model.n):
+        sweeps = np.flatnonzero(m.joint == j)
+        if sweeps.size == 0:
+            continue
+        k = sweeps[0]
+        a0, b0 = coef[k, 0, 0], coef[k, 0, 1]
+        A, Bv = coef[k, 1:, 0], coef[k, 1:, 1]
+        a1, b1 = a0 + A @ com, b0 + Bv @ com
+        if min(np.hypot(a0, b0), np.hypot(a1, b1)) < 1e-6:
+            continue
+        phase[j] = np.arctan2(b1, a1) - np.arctan2(b0, a0)
+        grad = (a1 * Bv - b1 * A) / (a1**2 + b1**2)
+        std[j] = float(np.sqrt(max(grad @ cov_com @ grad, 0.0)))
+    return (phase + np.pi) % (2 * np.pi) - np.pi, std
+
+
+def _check_same_model(recs: list[Recording]) -> FitModel:
+    if not recs:
+        raise InputError("no recording to fit")
+    names = {r.model for r in recs}
+    if len(names) > 1:
+        raise InputError(f"recordings of different models cannot be fitted jointly: {names}")
+    return fit_model(recs[0].model)
+
+
+def _params(
+    model: FitModel, rec: Recording, sol: Solution, phase, phase_std, seconds: float
+) -> RobotParams:
+    sol = jax.tree.map(np.asarray, sol)
+    if not bool(sol.converged) or not np.all(np.isfinite(sol.ratio)):
+        raise FitError(
+            f"the joint fit did not converge after {int(sol.iterations)} iterations "
+            f"(noise estimate {float(sol.sigma):.3g} A); nothing was written"
+        )
+    n = model.n
+    std = np.sqrt(np.clip(np.diag(sol.cov), 0.0, None))
+    com = sol.com.reshape(-1, 3)
+    com_std = std[2 * n :].reshape(-1, 3)
+    weak = [
+        model.parameter_names()[i]
+        for i in np.flatnonzero(std / _scales(model) > 0.5)  # std above half the prior
+    ]
+    return RobotParams(
+        model=rec.model,
+        ratio=sol.ratio,
+        friction=np.abs(sol.friction),
+        com_offset={link: com[i] for i, link in enumerate(model.links)},
+        phase_shift=phase,
+        std={
+            "ratio": std[:n],
+            "friction": std[n : 2 * n],
+            "com_offset": {link: com_std[i] for i, link in enumerate(model.links)},
+            "phase_shift": phase_std,
+            "current_noise": float(sol.sigma),
+        },
+        method="jax",
+        fit_seconds=seconds,
+        diagnostics={
+            "iterations": int(sol.iterations),
+            "ratio_source": [
+                "fit" if e else f"mean of type {model.types[j]}" for j, e in enumerate(sol.excited)
+            ],
+            "excitation": None,
+            "singular_values": sol.singular,
+            "prior_dominated": weak,
+            "residual_rms": float(sol.sigma),
+        },
+    )
+
+
+def _scales(model: FitModel) -> np.ndarray:
+    """Prior standard deviation of each parameter (friction: none, so inf)."""
+    n = model.n
+    return np.concatenate(
+        [PRIOR_RATIO * model.ratio0, np.full(n, np.inf), np.full(model.K, PRIOR_COM)]
+    )
+
+
+def fit(recordings: Recording | list[Recording]) -> RobotParams:
+    """Fit one parameter set to one or several recordings of one robot, jointly.
+
+    The recordings may differ in gravity (mounting) and payload. Raises ``FitError`` when the
+    fit does not converge.
+    """
+    recs = [recordings] if isinstance(recordings, Recording) else list(recordings)
+    model = _check_same_model(recs)
+    start = time.perf_counter()
+    prepared = [prepare(model, r) for r in recs]
+    st = prepared[0][0]
+    for other in prepared[1:]:
+        st = st + other[0]
+    sol = jax.block_until_ready(solve(_key(model), st))
+    return _result(model, recs[0], sol, prepared[0], time.perf_counter() - start)
+
+
+def _result(model, rec, sol, prepared, seconds) -> RobotParams:
+    cov = np.asarray(sol.cov)[2 * model.n :, 2 * model.n :]
+    phase, phase_std = phase_shift(model, prepared[1], prepared[2], np.asarray(sol.com), cov)
+    return _params(model, rec, sol, phase, phase_std, seconds)
+
+
+_solve_each = jax.jit(jax.vmap(solve.__wrapped__, in_axes=(None, 0)), static_argnums=0)
+_stats_each = jax.jit(jax.vmap(_sweep_stats.__wrapped__, in_axes=(None, 0)), static_argnums=0)
+
+
+def fit_each(
+    recordings: Iterable[Recording], batch: int = 64, progress: bool = False
+) -> list[RobotParams]:
+    """Fit every recording on its own, ``batch`` at a time in one vmapped computation.
+
+    Raises ``FitError`` naming the recordings whose fit did not converge (no result then).
+    """
+    out: list[RobotParams] = []
+    failed: list[int] = []
+    model = None
+    chunk: list[Recording] = []
+    bar = tqdm(desc="fitting", unit="rec", disable=not progress)
+
+    def run(chunk: list[Recording]) -> None:
+        start = time.perf_counter()
+        moments = [sweep_moments(r) for r in chunk]
+        size = _bucket(max(m.n_sweeps for m in moments))
+        stacked = jax.tree.map(lambda *a: np.stack(a), *[_padded(m, size) for m in moments])
+        st, coef = _stats_each(model, stacked)
+        sols = jax.block_until_ready(_solve_each(_key(model), st))
+        seconds = (time.perf_counter() - start) / len(chunk)
+        coef = np.asarray(coef)
+        for i, rec in enumerate(chunk):
+            sol = jax.tree.map(lambda a, i=i: a[i], sols)
+            try:
+                out.append(_result(model, rec, sol, (None, coef[i], moments[i]), seconds))
+            except FitError:
+                failed.append(len(out) + len(failed))
+        bar.update(len(chunk))
+
+    for rec in recordings:
+        if model is None:
+            model = fit_model(rec.model)
+        elif rec.model != chunk[0].model if chunk else False:
+            raise InputError("fit_each needs recordings of one robot model")
+        chunk.append(rec)
+        if len(chunk) == batch:
+            run(chunk)
+            chunk = []
+    if chunk:
+        run(chunk)
+    bar.close()
+    if model is None:
+        raise InputError("no recording to fit")
+    if failed:
+        raise FitError(f"the fit of recording(s) {failed} did not converge; nothing was written")
+    return out
