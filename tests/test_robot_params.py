@@ -48,6 +48,7 @@ def test_json_round_trip_keeps_every_field(tmp_path, robot):
         "std",
         "method",
         "fit_seconds",
+        "diagnostics",
     }
 
 
