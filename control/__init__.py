@@ -1,1 +1,37 @@
-"""Current-based impedance control of the arm and the base follower."""
+"""Current-based impedance control of the arm and the base follower.
+
+``make_impedance_controller`` (paper Eq. 3-5, 16; jitted JAX) and its pinocchio twin,
+``make_velocity_controller`` (the non-compliant reference), ``BaseFollower`` (Eq. 20), and
+their gains (``ImpedanceGains``, ``VelocityGains``, ``BaseGains``). Frames: the arm's base
+frame; SI units (m, rad, s, N, N m, A).
+"""
+
+from jaxcomp.control.base_follower import BaseFollower, follow_twist
+from jaxcomp.control.gains import BaseGains, ImpedanceGains, JointGains, VelocityGains
+from jaxcomp.control.impedance import (
+    Diagnostics,
+    ImpedanceController,
+    ImpedanceControllerPinocchio,
+    make_impedance_controller,
+)
+from jaxcomp.control.velocity import (
+    VelocityController,
+    VelocityDiagnostics,
+    make_velocity_controller,
+)
+
+__all__ = [
+    "BaseFollower",
+    "BaseGains",
+    "Diagnostics",
+    "ImpedanceController",
+    "ImpedanceControllerPinocchio",
+    "ImpedanceGains",
+    "JointGains",
+    "VelocityController",
+    "VelocityDiagnostics",
+    "VelocityGains",
+    "follow_twist",
+    "make_impedance_controller",
+    "make_velocity_controller",
+]

@@ -20,7 +20,9 @@ from jaxcomp.recording import Recording
 #: Default bin width, rad (1 degree).
 BIN_WIDTH = np.deg2rad(1.0)
 #: A sample is steady when its swept-joint speed is at least this fraction of the sweep's.
-STEADY_FRACTION = 0.9
+STEADY_FRACTION = 0.98
+#: Steady samples closer than this (s) to the first or last of their pass are left out.
+STEADY_TRIM = 0.05
 
 
 @dataclass(frozen=True)
@@ -75,23 +77,33 @@ def sweep_ids(joint: np.ndarray, direction: np.ndarray) -> np.ndarray:
     return np.where(joint >= 0, ids, -1)
 
 
-def steady(rec: Recording, fraction: float = STEADY_FRACTION) -> np.ndarray:
-    """(N,) bool: swept samples moving in their direction at >= ``fraction`` of the sweep speed.
+def steady(
+    rec: Recording, fraction: float = STEADY_FRACTION, trim: float = STEADY_TRIM
+) -> np.ndarray:
+    """(N,) bool: the constant-speed samples of every sweep pass.
 
-    The sweep speed is the median swept-joint speed of the sweep's samples in that direction.
+    A sample is steady when its swept joint moves in the pass's direction at >= ``fraction``
+    of the pass speed (the median speed of the pass) and it lies more than ``trim`` s inside
+    the first and last such sample (the servo still accelerates there).
     """
     ids = sweep_ids(rec.joint, rec.direction)
-    swept = ids >= 0
-    rows = np.flatnonzero(swept)
-    speed = np.zeros(rec.n_samples)
-    speed[rows] = rec.dq[rows, rec.joint[rows]] * rec.direction[rows]
+    swept = np.flatnonzero(ids >= 0)
     keep = np.zeros(rec.n_samples, bool)
-    key = ids * 2 + (rec.direction > 0)
-    for k in np.unique(key[swept]):
-        sel = swept & (key == k)
-        ref = np.median(speed[sel])
-        if ref > 0:
-            keep |= sel & (speed >= fraction * ref)
+    if swept.size == 0:
+        return keep
+    key = ids[swept] * 2 + (rec.direction[swept] > 0)
+    speed = rec.dq[swept, rec.joint[swept]] * rec.direction[swept]
+    t = rec.t[swept]
+    bounds = np.flatnonzero(np.diff(key)) + 1  # passes are contiguous runs of one key
+    for part in np.split(np.arange(swept.size), bounds):
+        ref = np.median(speed[part])
+        if ref <= 0:
+            continue
+        fast = part[speed[part] >= fraction * ref]
+        if fast.size == 0:
+            continue
+        inside = (t[fast] > t[fast[0]] + trim) & (t[fast] < t[fast[-1]] - trim)
+        keep[swept[fast[inside]]] = True
     return keep
 
 

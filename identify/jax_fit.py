@@ -55,6 +55,12 @@ PRIOR_RATIO = 1.0
 TIE = 1e-4
 #: RMS swept gravity torque (N m) below which gravity does not excite a joint.
 EXCITATION = 0.05
+#: Prior standard deviation of the viscous friction, A s/rad (as current per joint speed).
+PRIOR_VISCOUS = 0.1
+#: Relative spread of pass speeds below which a joint counts as swept at one speed.
+SPEED_SPREAD = 0.1
+#: Linear parameters per joint: ratio, friction, viscous.
+_LIN = 3
 #: Scales that make the parameters comparable for the identifiability report.
 _COM_SCALE = 1e-3  # m: offsets in mm
 
@@ -91,6 +97,7 @@ class Solution(NamedTuple):
 
     ratio: jax.Array
     friction: jax.Array
+    viscous: jax.Array  # (n,) A s/rad
     com: jax.Array  # (K,) m
     cov: jax.Array  # (P, P) covariance of [ratio, friction, com]
     sigma: jax.Array  # A, noise standard deviation estimated from the residuals
@@ -126,6 +133,7 @@ class FitModel:
     def parameter_names(self) -> list[str]:
         names = [f"ratio[{j}]" for j in range(self.n)]
         names += [f"friction[{j}]" for j in range(self.n)]
+        names += [f"viscous[{j}]" for j in range(self.n)]
         names += [f"com_offset[{link}].{ax}" for link in self.links for ax in "xyz"]
         return names
 
@@ -206,17 +214,16 @@ def _sweep_stats(model: FitModel, m: SweepMoments) -> tuple[Stats, jax.Array]:
     at0, at90, at180 = vals[:, 0], vals[:, 1], vals[:, 2]
     c = 0.5 * (at0 + at180)
     coef = jnp.stack([at90 - c, 0.5 * (at0 - at180), c], axis=2)  # (S, 1 + K, 3): a, b, c
-    F = model.K + 2
-    L = jnp.zeros((S, F, 4))
-    L = L.at[:, : F - 1, :3].set(coef).at[:, F - 1, 3].set(1.0)
+    F = model.K + 3
+    L = jnp.zeros((S, F, 5))
+    L = L.at[:, : F - 2, :3].set(coef).at[:, F - 2, 3].set(1.0).at[:, F - 1, 4].set(1.0)
     onehot = jax.nn.one_hot(m.joint, model.n, dtype=float)  # (S, n)
-    M4 = m.moments[:, :4, :4]
-    per_S = jnp.einsum("sfa,sab,sgb->sfg", L, M4, L)
-    per_s = jnp.einsum("sfa,sa->sf", L, m.moments[:, :4, 4])
+    per_S = jnp.einsum("sfa,sab,sgb->sfg", L, m.moments[:, :5, :5], L)
+    per_s = jnp.einsum("sfa,sa->sf", L, m.moments[:, :5, 5])
     st = Stats(
         S=jnp.einsum("sj,sfg->jfg", onehot, per_S),
         s=jnp.einsum("sj,sf->jf", onehot, per_s),
-        c2=onehot.T @ m.moments[:, 4, 4],
+        c2=onehot.T @ m.moments[:, 5, 5],
         samples=onehot.T @ m.moments[:, 2, 2],
         torque2=onehot.T @ per_S[:, 0, 0],
     )
@@ -224,9 +231,10 @@ def _sweep_stats(model: FitModel, m: SweepMoments) -> tuple[Stats, jax.Array]:
 
 
 def _beta(theta: jax.Array, n: int, K: int) -> jax.Array:
-    """(n, F) per-joint linear coefficients [r_j, r_j delta, l_j] of the features."""
-    r, l, delta = theta[:n], theta[n : 2 * n], theta[2 * n :]
-    return jnp.concatenate([r[:, None], r[:, None] * delta[None, :], l[:, None]], axis=1)
+    """(n, F) per-joint coefficients [r_j, r_j delta, l_j, b_j] of the features
+    [tau0, reg, d, v]; theta = [r (n), l (n), b (n), delta (K)]."""
+    r, l, b, delta = theta[:n], theta[n : 2 * n], theta[2 * n : 3 * n], theta[3 * n :]
+    return jnp.concatenate([r[:, None], r[:, None] * delta[None, :], l[:, None], b[:, None]], 1)
 
 
 def _rss(theta, st: Stats, n: int, K: int) -> jax.Array:
@@ -237,12 +245,14 @@ def _rss(theta, st: Stats, n: int, K: int) -> jax.Array:
 
 
 class _Priors(NamedTuple):
-    """Quadratic priors on the ratios: precision (n,), mean (n,), tie rows (n, n) and weights."""
+    """Quadratic priors: ratio precision (n,) and mean (n,), tie rows (n, n) and weights
+    (n,), viscous precision (n,)."""
 
     prec: jax.Array
     mean: jax.Array
     tie: jax.Array
     tie_w: jax.Array
+    viscous: jax.Array
 
 
 def _priors(st: Stats, ratio0: jax.Array, types: tuple[str, ...]) -> tuple[_Priors, jax.Array]:
@@ -255,31 +265,29 @@ def _priors(st: Stats, ratio0: jax.Array, types: tuple[str, ...]) -> tuple[_Prio
     tie = (~excited)[:, None] * (jnp.eye(n) - mean_of)
     tie_w = jnp.where(has & ~excited, 1.0 / (TIE * ratio0) ** 2, 0.0)
     width = jnp.where(excited | has, PRIOR_RATIO, TIE)  # no donor: stay at the nominal ratio
-    return _Priors(1.0 / (width * ratio0) ** 2, ratio0, tie, tie_w), excited
+    # viscous friction needs passes at different speeds: with one speed (v = speed d) it is
+    # indistinguishable from the friction loss and is held at 0
+    vv, vd, dd = st.S[:, -1, -1], st.S[:, -1, -2], st.S[:, -2, -2]
+    one_speed = vd**2 >= (1.0 - SPEED_SPREAD**2) * vv * dd
+    viscous = jnp.where(one_speed, 1.0 / (1e-6 * PRIOR_VISCOUS) ** 2, 1.0 / PRIOR_VISCOUS**2)
+    return _Priors(1.0 / (width * ratio0) ** 2, ratio0, tie, tie_w, viscous), excited
 
 
 def _inner(delta, st: Stats, pr: _Priors, sigma2):
-    """Best (r, l) (2n,) for fixed offsets ``delta`` and the objective value there.
-
-    Objective: 0.5 RSS / sigma2 + 0.5 (ratio and offset priors); linear in (r, l).
-    """
+    """Best linear parameters x = [r, l, b] (3n,) for fixed offsets ``delta``, and the
+    objective 0.5 RSS / sigma2 + 0.5 (priors) there."""
     n = st.c2.shape[0]
     K = delta.shape[0]
-    # beta_j = r_j e_r + l_j e_l with e_r = [1, delta, 0], e_l = [0, 0.., 1]
-    e_r = jnp.concatenate([jnp.ones(1), delta, jnp.zeros(1)])
-    e_l = jnp.zeros(K + 2).at[-1].set(1.0)
-    E = jnp.stack([e_r, e_l], axis=1)  # (F, 2)
-    M = jnp.einsum("fa,jfg,gb->jab", E, st.S, E)  # (n, 2, 2)
-    v = jnp.einsum("fa,jf->ja", E, st.s)  # (n, 2)
-    A = jnp.zeros((2 * n, 2 * n))
-    idx = jnp.arange(n)
-    for a in range(2):
-        for b in range(2):
-            A = A.at[a * n + idx, b * n + idx].set(M[:, a, b] / sigma2)
-    rhs = jnp.concatenate([v[:, 0], v[:, 1]]) / sigma2
-    A = A.at[:n, :n].add(jnp.diag(pr.prec) + pr.tie.T @ (pr.tie_w[:, None] * pr.tie))
+    # beta_j = r_j [1, delta, 0, 0] + l_j [0, .., 1, 0] + b_j [0, .., 0, 1]
+    E = jnp.zeros((K + 3, _LIN)).at[0, 0].set(1.0).at[1 : K + 1, 0].set(delta)
+    E = E.at[K + 1, 1].set(1.0).at[K + 2, 2].set(1.0)
+    M = jnp.einsum("fa,jfg,gb->jab", E, st.S, E)  # (n, 3, 3)
+    v = jnp.einsum("fa,jf->aj", E, st.s).reshape(-1)  # (3n,) ordered [r.., l.., b..]
+    A = jnp.einsum("iab,ik->aibk", M, jnp.eye(n)).reshape(_LIN * n, _LIN * n) / sigma2
+    A = A + jnp.diag(jnp.concatenate([pr.prec, jnp.full(n, 1e-12), pr.viscous]))
+    A = A.at[:n, :n].add(pr.tie.T @ (pr.tie_w[:, None] * pr.tie))
+    rhs = v / sigma2
     rhs = rhs.at[:n].add(pr.prec * pr.mean)
-    A = A.at[n:, n:].add(jnp.eye(n) * 1e-12)  # a joint without a sweep keeps l = 0
     x = jnp.linalg.solve(A, rhs)
     value = (
         0.5 * (jnp.sum(st.c2) / sigma2 - x @ rhs)
@@ -306,7 +314,7 @@ def solve(model_key: tuple, st: Stats, max_iter: int = 50) -> Solution:
     """
     n, K, ratio0, types = model_key
     ratio0 = jnp.asarray(ratio0)
-    P = 2 * n + K
+    P = _LIN * n + K
     pr, excited = _priors(st, ratio0, types)
     dof = jnp.maximum(jnp.sum(st.samples) - P, 1.0)
 
@@ -336,7 +344,27 @@ def solve(model_key: tuple, st: Stats, max_iter: int = 50) -> Solution:
     def cont(carry):
         return (~carry[3]) & (carry[2] < max_iter)
 
-    delta0 = jnp.zeros(K)
+    def offsets_given_ratio(r, sigma2):
+        # for fixed ratios the objective is quadratic in z = [l, b, delta]: one Newton step
+        def objective(z):
+            theta = jnp.concatenate([r, z])
+            return 0.5 * _rss(theta, st, n, K) / sigma2 + 0.5 * (
+                jnp.sum(pr.viscous * z[n : 2 * n] ** 2) + jnp.sum(z[2 * n :] ** 2) / PRIOR_COM**2
+            )
+
+        z0 = jnp.zeros(2 * n + K)
+        H = jax.hessian(objective)(z0) + 1e-12 * jnp.eye(2 * n + K)
+        return -jnp.linalg.solve(H, jax.grad(objective)(z0))[2 * n :]
+
+    def alternate(_, delta):
+        sigma2 = jnp.maximum(rss(delta, 1.0) / dof, 1e-12)
+        r = _inner(delta, st, pr, sigma2)[0][:n]
+        return offsets_given_ratio(r, sigma2)
+
+    # start the Newton iteration from a few alternating (ratio | offsets) least-squares
+    # rounds: the reduced objective is not convex, and from the nominal COM it may otherwise
+    # end in a local minimum
+    delta0 = jax.lax.fori_loop(0, 3, alternate, jnp.zeros(K))
     sigma2_0 = jnp.maximum(rss(delta0, 1.0) / dof, 1e-12)
     init = (delta0, jnp.asarray(1e-4), jnp.asarray(0), jnp.asarray(False), sigma2_0)
     delta, lam, it, done, sigma2 = jax.lax.while_loop(cont, step, init)
@@ -347,16 +375,18 @@ def solve(model_key: tuple, st: Stats, max_iter: int = 50) -> Solution:
     H_data = jnp.einsum("jfp,jfg,jgq->pq", Bj, st.S, Bj) / sigma2
     H_prior = jnp.zeros((P, P))
     H_prior = H_prior.at[:n, :n].add(jnp.diag(pr.prec) + pr.tie.T @ (pr.tie_w[:, None] * pr.tie))
-    H_prior = H_prior.at[2 * n :, 2 * n :].add(jnp.eye(K) / PRIOR_COM**2)
+    H_prior = H_prior.at[2 * n : 3 * n, 2 * n : 3 * n].add(jnp.diag(pr.viscous))
+    H_prior = H_prior.at[3 * n :, 3 * n :].add(jnp.eye(K) / PRIOR_COM**2)
     H_prior = H_prior.at[n : 2 * n, n : 2 * n].add(jnp.eye(n) * 1e-12)
     cov = jnp.linalg.inv(H_data + H_prior)
-    scale = jnp.concatenate([ratio0, jnp.full(n, 0.1), jnp.full(K, _COM_SCALE)])
+    scale = jnp.concatenate([ratio0, jnp.full(n, 0.1), jnp.full(n, 0.01), jnp.full(K, _COM_SCALE)])
     singular = jnp.linalg.svd(H_data * scale[:, None] * scale[None, :], compute_uv=False)
     converged = done & (lam <= 1e8) & jnp.all(jnp.isfinite(theta))
     return Solution(
         ratio=theta[:n],
         friction=theta[n : 2 * n],
-        com=theta[2 * n :],
+        viscous=theta[2 * n : 3 * n],
+        com=theta[3 * n :],
         cov=cov,
         sigma=jnp.sqrt(sigma2),
         singular=singular,
@@ -379,7 +409,7 @@ def _padded(m: SweepMoments, size: int) -> SweepMoments:
     return m._replace(
         joint=np.r_[m.joint, np.zeros(extra, np.int64)],
         hold=np.concatenate([m.hold, np.zeros((extra, m.hold.shape[1]))]),
-        moments=np.concatenate([m.moments, np.zeros((extra, 5, 5))]),
+        moments=np.concatenate([m.moments, np.zeros((extra, 6, 6))]),
         count=np.r_[m.count, np.zeros(extra, np.int64)],
     )
 
@@ -442,11 +472,9 @@ def _params(
     n = model.n
     std = np.sqrt(np.clip(np.diag(sol.cov), 0.0, None))
     com = sol.com.reshape(-1, 3)
-    com_std = std[2 * n :].reshape(-1, 3)
-    weak = [
-        model.parameter_names()[i]
-        for i in np.flatnonzero(std / _scales(model) > 0.5)  # std above half the prior
-    ]
+    com_std = std[_LIN * n :].reshape(-1, 3)
+    names = model.parameter_names()
+    prior = _prior_widths(model)
     return RobotParams(
         model=rec.model,
         ratio=sol.ratio,
@@ -458,32 +486,37 @@ def _params(
             "friction": std[n : 2 * n],
             "com_offset": {link: com_std[i] for i, link in enumerate(model.links)},
             "phase_shift": phase_std,
-            "current_noise": float(sol.sigma),
         },
         method="jax",
         fit_seconds=seconds,
         diagnostics={
             "iterations": int(sol.iterations),
+            "current_noise": float(sol.sigma),
+            "viscous": sol.viscous,
+            "viscous_std": std[2 * n : 3 * n],
             "ratio_source": [
                 "fit" if e else f"mean of type {model.types[j]}" for j, e in enumerate(sol.excited)
             ],
-            "excitation": None,
             "singular_values": sol.singular,
-            "prior_dominated": weak,
-            "residual_rms": float(sol.sigma),
+            "prior_dominated": [names[i] for i in np.flatnonzero(std > 0.5 * prior)],
         },
     )
 
 
-def _scales(model: FitModel) -> np.ndarray:
-    """Prior standard deviation of each parameter (friction: none, so inf)."""
+def _prior_widths(model: FitModel) -> np.ndarray:
+    """Prior standard deviation of each parameter (inf: no prior)."""
     n = model.n
     return np.concatenate(
-        [PRIOR_RATIO * model.ratio0, np.full(n, np.inf), np.full(model.K, PRIOR_COM)]
+        [
+            PRIOR_RATIO * model.ratio0,
+            np.full(n, np.inf),
+            np.full(n, PRIOR_VISCOUS),
+            np.full(model.K, PRIOR_COM),
+        ]
     )
 
 
-def fit(recordings: Recording | list[Recording]) -> RobotParams:
+def fit(recordings: Recording | list[Recording], max_iter: int = 50) -> RobotParams:
     """Fit one parameter set to one or several recordings of one robot, jointly.
 
     The recordings may differ in gravity (mounting) and payload. Raises ``FitError`` when the
@@ -496,12 +529,12 @@ def fit(recordings: Recording | list[Recording]) -> RobotParams:
     st = prepared[0][0]
     for other in prepared[1:]:
         st = st + other[0]
-    sol = jax.block_until_ready(solve(_key(model), st))
+    sol = jax.block_until_ready(solve(_key(model), st, max_iter))
     return _result(model, recs[0], sol, prepared[0], time.perf_counter() - start)
 
 
 def _result(model, rec, sol, prepared, seconds) -> RobotParams:
-    cov = np.asarray(sol.cov)[2 * model.n :, 2 * model.n :]
+    cov = np.asarray(sol.cov)[_LIN * model.n :, _LIN * model.n :]
     phase, phase_std = phase_shift(model, prepared[1], prepared[2], np.asarray(sol.com), cov)
     return _params(model, rec, sol, phase, phase_std, seconds)
 
@@ -511,7 +544,7 @@ _stats_each = jax.jit(jax.vmap(_sweep_stats.__wrapped__, in_axes=(None, 0)), sta
 
 
 def fit_each(
-    recordings: Iterable[Recording], batch: int = 64, progress: bool = False
+    recordings: Iterable[Recording], batch: int = 32, progress: bool = False
 ) -> list[RobotParams]:
     """Fit every recording on its own, ``batch`` at a time in one vmapped computation.
 
@@ -527,7 +560,9 @@ def fit_each(
         start = time.perf_counter()
         moments = [sweep_moments(r) for r in chunk]
         size = _bucket(max(m.n_sweeps for m in moments))
-        stacked = jax.tree.map(lambda *a: np.stack(a), *[_padded(m, size) for m in moments])
+        padded = [_padded(m, size) for m in moments]
+        padded += padded[-1:] * (batch - len(padded))  # one batch shape: one compilation
+        stacked = jax.tree.map(lambda *a: np.stack(a), *padded)
         st, coef = _stats_each(model, stacked)
         sols = jax.block_until_ready(_solve_each(_key(model), st))
         seconds = (time.perf_counter() - start) / len(chunk)

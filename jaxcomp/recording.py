@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxcomp.errors import InputError, JaxcompError
+from jaxcomp.errors import InputError, JaxcompError, ModelError
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import arm_joint_indices, write_json_atomic
 
@@ -137,6 +137,8 @@ def _numeric(data: Mapping, name: str, shape: tuple, kind: str = "float") -> np.
     arr = arr.astype(np.float64)
     bad = ~np.isfinite(arr)
     if bad.any():
+        if arr.ndim == 0:
+            raise InputError(f"recording field {name!r} is {arr.item()}, not a finite number")
         first = np.argwhere(bad)[0].tolist()
         raise InputError(
             f"recording field {name!r} has {int(bad.sum())} NaN/inf value(s), first at index "
@@ -154,22 +156,33 @@ def _degrees_hint(name: str, arr: np.ndarray, limit: float, unit: str) -> None:
         )
 
 
-def validate(data: Mapping[str, Any], source: str = "recording") -> Recording:
-    """A ``Recording`` from a mapping of fields (e.g. an opened ``.npz``), fully checked."""
+def validate(
+    data: Mapping[str, Any], source: str = "recording", require_sweep: bool = True
+) -> Recording:
+    """A ``Recording`` from a mapping of fields (e.g. an opened ``.npz``), fully checked.
+
+    ``require_sweep``: refuse a recording without any swept sample (what identification
+    needs); a controller's log has none.
+    """
     try:
-        return _validate(data)
+        return _validate(data, require_sweep)
     except JaxcompError as exc:
         raise type(exc)(f"{source}: {exc}") from None
 
 
-def _validate(data: Mapping[str, Any]) -> Recording:
+def _validate(data: Mapping[str, Any], require_sweep: bool) -> Recording:
     if "model" not in data:
         raise InputError("recording field 'model' is missing")
     model = np.asarray(data["model"])
-    if model.dtype.kind not in "US" or model.ndim != 0 or not str(model):
+    if model.dtype.kind == "S" and model.ndim == 0:
+        model = np.asarray(model.item().decode("utf-8", "replace"))
+    if model.dtype.kind != "U" or model.ndim != 0 or not str(model):
         raise InputError("recording field 'model' must be a non-empty string")
     model = str(model)
-    robot = load_robot(model)
+    try:
+        robot = load_robot(model)
+    except ModelError as exc:
+        raise InputError(f"recording field 'model': {exc}") from None
     n = len(arm_joint_indices(robot))
     t = _numeric(data, "t", (None,))
     N = t.shape[0]
@@ -211,7 +224,7 @@ def _validate(data: Mapping[str, Any]) -> Recording:
             f"{int(np.flatnonzero(mismatch)[0])}: a swept sample (joint >= 0) needs direction "
             "+1 or -1, a sample outside sweeps (joint -1) direction 0"
         )
-    if not np.any(joint >= 0):
+    if require_sweep and not np.any(joint >= 0):
         raise InputError("recording has no sweep: field 'joint' is -1 everywhere")
     gravity = _numeric(data, "gravity", (3,)) if "gravity" in data else np.array(STANDARD_GRAVITY)
     g = float(np.linalg.norm(gravity))
@@ -254,8 +267,10 @@ def _validate(data: Mapping[str, Any]) -> Recording:
     )
 
 
-def load_recording(path: str | Path) -> Recording:
-    """Read and validate a recording ``.npz``; ``InputError`` naming the problem otherwise."""
+def load_recording(path: str | Path, require_sweep: bool = True) -> Recording:
+    """Read and validate a recording ``.npz``; ``InputError`` naming the problem otherwise.
+
+    ``require_sweep=False`` also accepts recordings without sweeps (controller logs)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"recording not found: {path}")
@@ -266,7 +281,7 @@ def load_recording(path: str | Path) -> Recording:
         raise InputError(f"{path}: not a readable .npz recording ({exc})") from None
     except Exception as exc:  # zipfile.BadZipFile and friends from a truncated file
         raise InputError(f"{path}: not a readable .npz recording ({exc})") from None
-    return validate(data, str(path))
+    return validate(data, str(path), require_sweep)
 
 
 # --------------------------------------------------------------------- incremental writing
@@ -281,6 +296,7 @@ class RecordingWriter:
         flush_every: samples per part file (1000 = one second at 1 kHz).
         resume: keep the completed segments of an earlier, interrupted writer of ``path``;
             otherwise existing parts are discarded.
+        require_sweep: the joined recording must contain a sweep (False for controller logs).
     """
 
     def __init__(
@@ -295,6 +311,7 @@ class RecordingWriter:
         extra: Mapping[str, tuple] | None = None,
         flush_every: int = 1000,
         resume: bool = False,
+        require_sweep: bool = True,
     ):
         self.path = Path(path)
         self.parts = self.path.with_name(self.path.name + ".parts")
@@ -306,6 +323,7 @@ class RecordingWriter:
         if payload_com is not None:
             self.meta["payload_com"] = np.asarray(payload_com, float).tolist()
         self.meta["extra"] = {k: list(v) for k, v in (extra or {}).items()}
+        self.meta["require_sweep"] = bool(require_sweep)
         self.flush_every = int(flush_every)
         self.completed: list[Any] = []
         self._files: list[str] = []  # part files of completed segments
@@ -313,6 +331,8 @@ class RecordingWriter:
         self._segment: Any = None
         self._buf: dict[str, list] = {k: [] for k in self._fields()}
         self._count = 0
+        #: time (s) of the last sample written or buffered; None before the first
+        self.last_t: float | None = None
         if resume and (self.parts / "manifest.json").is_file():
             manifest = json.loads((self.parts / "manifest.json").read_text())
             if manifest["meta"] != json.loads(json.dumps(self.meta)):
@@ -322,6 +342,10 @@ class RecordingWriter:
                 )
             self.completed = manifest["completed"]
             self._files = manifest["files"]
+            for name in self._files:
+                with np.load(self.parts / name) as part:
+                    self._count += int(part["t"].shape[0])
+                    self.last_t = float(part["t"][-1])
             for f in self.parts.glob("part-*.npz"):
                 if f.name not in self._files:
                     f.unlink()  # samples of an unfinished segment
@@ -347,6 +371,13 @@ class RecordingWriter:
     ) -> None:
         """Add one sample (format units)."""
         buf = self._buf
+        missing = [k for k in self.meta["extra"] if k not in extra]
+        unknown = [k for k in extra if k not in self.meta["extra"]]
+        if missing or unknown:
+            raise InputError(
+                f"recording sample: extra field(s) missing {missing} / not declared {unknown}"
+            )
+        self.last_t = float(t)
         buf["t"].append(float(t))
         buf["q"].append(np.array(q, float))
         buf["dq"].append(np.array(dq, float))
@@ -411,13 +442,14 @@ def _join(parts: Path, files: list[str], meta: Mapping) -> Recording:
     for key in _OPTIONAL:
         if key in meta:
             data[key] = np.asarray(meta[key])
-    return validate(data, str(parts))
+    return validate(data, str(parts), meta.get("require_sweep", True))
 
 
 def recover(path: str | Path) -> Recording:
     """Join every part file left by an interrupted ``RecordingWriter`` of ``path``.
 
-    Includes the samples of an unfinished segment (up to its last flush); writes ``path``.
+    Includes the samples of an unfinished segment (up to its last flush); writes ``path`` and
+    keeps the parts, so a later ``RecordingWriter(..., resume=True)`` can still go on.
     """
     path = Path(path)
     parts = path.with_name(path.name + ".parts")

@@ -19,8 +19,25 @@ def cli() -> None:
     """
 
 
+def _compilation_cache() -> None:
+    """Keep compiled XLA programs between runs (``$JAXCOMP_CACHE``, default
+    ``~/.cache/jaxcomp/xla``; ``JAXCOMP_CACHE=off`` disables it): the fits and the controller
+    compile for seconds and then run in milliseconds."""
+    import os
+    from pathlib import Path
+
+    where = os.environ.get("JAXCOMP_CACHE", str(Path.home() / ".cache" / "jaxcomp" / "xla"))
+    if where.lower() in ("off", "0", "none", ""):
+        return
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", where)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
 def main() -> None:
     """Entry point: run the CLI; jaxcomp's own errors print one line and exit with status 2."""
+    _compilation_cache()
     try:
         cli(standalone_mode=False)
     except click.exceptions.Abort:

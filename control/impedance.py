@@ -1,0 +1,540 @@
+"""Current-based Cartesian impedance control of the arm (paper Eq. 3-5 and 16).
+
+One control step, at joint positions q (rad) and velocities dq (rad/s), for a target position
+x_d (m), velocity xd_d (m/s) and acceleration xdd_d (m/s^2) of a site (default: the end
+effector), all in the arm's base frame (the arm's own model, e.g. ``gen3_lite``):
+
+    e   = x_d - x, zeroed when |e| < deadband, its norm clipped to error_clip
+    F   = K_d e + D_d (xd_d - J dq)  [+ Lambda xdd_d + mu xd_d  with gains.feedforward]
+    tau = J^T F + N^T tau_2 + g(q),  tau_2 = K_n (q_pref - q) - D_n dq  [+ J_w^T m_o]
+    c   = Eq. (16)(tau, dq; r, l, t), then at most current_rate_limit * period from the
+          previous command, then within +-current_limit
+
+J is the site's position Jacobian (3, n), g the gravity torque of the identified model
+(``RobotParams.inertial_params``: nominal inertials with the calibrated COM offsets),
+N^T = I - J^T J_bar^T the dynamically consistent torque projector (J_bar = M^-1 J^T Lambda,
+Lambda = (J M^-1 J^T)^-1; Khatib's N = I - J_bar J), r, l the identified ratio (A/(N m)) and
+friction loss (A). The optional orientation task m_o = K_o e_o - D_o omega (e_o the rotation
+vector from the site's orientation to ``target_rot``, small-angle form) is a secondary task, in
+the nullspace of the position task with the posture. Currents are in A.
+
+``make_impedance_controller`` returns an ``ImpedanceController`` whose ``step`` is one pure,
+jitted JAX function of device arrays (model constants and identified params folded in);
+``ImpedanceControllerPinocchio`` is the same law in pinocchio + numpy (the latency baseline).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcomp import current as current_model
+from jaxcomp import dynamics
+from jaxcomp.control.gains import ImpedanceGains, JointGains
+from jaxcomp.errors import InputError
+from jaxcomp.kinematic_tree import KinematicTree
+from jaxcomp.params import InertialParams
+from jaxcomp.robot import Robot
+from jaxcomp.robot_params import RobotParams
+
+# ----------------------------------------------------------------------------- diagnostics
+
+
+class Diagnostics(NamedTuple):
+    """What one control step saw and did, packed in one array (one output buffer per step).
+
+    ``data`` is (..., 10 + 4 n): ee_pos (3) | error (3) | force (3) | tau (n) | current_raw (n)
+    | rate_limited (n) | saturated (n) | clipped (1). Read it through the properties; they work
+    on JAX and numpy arrays and on batches. ``numpy()`` copies it to the host once.
+    """
+
+    data: jax.Array | np.ndarray
+
+    @property
+    def n(self) -> int:
+        """Number of joints."""
+        return (self.data.shape[-1] - 10) // 4
+
+    def _part(self, start: int, size: int):
+        return self.data[..., start : start + size]
+
+    @property
+    def ee_pos(self):
+        """(3,) m, the site's position x in the arm's base frame."""
+        return self._part(0, 3)
+
+    @property
+    def error(self):
+        """(3,) m, the position error x_d - x acting in the spring (after deadband and clip)."""
+        return self._part(3, 3)
+
+    @property
+    def force(self):
+        """(3,) N, the Cartesian force F (PD part, plus feedforward when on)."""
+        return self._part(6, 3)
+
+    @property
+    def tau(self):
+        """(n,) N m, the joint torques of Eq. (5), gravity included."""
+        return self._part(9, self.n)
+
+    @property
+    def current_raw(self):
+        """(n,) A, Eq. (16) before the rate limit and the saturation."""
+        return self._part(9 + self.n, self.n)
+
+    @property
+    def rate_limited(self):
+        """(n,) bool, the current rate limit acted on the joint."""
+        return self._part(9 + 2 * self.n, self.n) > 0.5
+
+    @property
+    def saturated(self):
+        """(n,) bool, the joint's current was cut to the current limit."""
+        return self._part(9 + 3 * self.n, self.n) > 0.5
+
+    @property
+    def clipped(self):
+        """() bool, the Cartesian error was longer than error_clip and was clipped."""
+        return self.data[..., 9 + 4 * self.n] > 0.5
+
+    def numpy(self) -> Diagnostics:
+        """The same diagnostics as a host (numpy) array."""
+        return Diagnostics(np.asarray(self.data))
+
+
+def pack_diagnostics(ee_pos, error, force, tau, current_raw, rate_limited, saturated, clipped):
+    """Diagnostics from its parts (JAX or numpy arrays; flags as bool)."""
+    xp = jnp if isinstance(ee_pos, jax.Array) else np
+    parts = [ee_pos, error, force, tau, current_raw]
+    flags = [rate_limited, saturated, xp.reshape(clipped, (1,))]
+    return Diagnostics(xp.concatenate(parts + [xp.asarray(f, dtype=float) for f in flags]))
+
+
+# ----------------------------------------------------------------------------- model terms
+
+
+class SiteDynamics(NamedTuple):
+    """Rigid-body terms of one pose that the controllers need (arm base frame)."""
+
+    gravity: jax.Array  # (n,) N m, g(q)
+    pos: jax.Array  # (3,) m, site position
+    rot: jax.Array  # (3, 3) site orientation
+    jac: jax.Array  # (6, n) site Jacobian, rows vx vy vz wx wy wz, world-aligned
+    mass: jax.Array  # (n, n) kg m^2, M(q)
+
+
+def site_dynamics(
+    tree: KinematicTree,
+    q: jax.Array,
+    site: int,
+    params: InertialParams | None = None,
+    gravity_vector=None,
+) -> SiteDynamics:
+    """g, site position, orientation, Jacobian and M at q (the one place to swap in a one-pass
+    dynamics function). XLA merges the forward kinematics these share."""
+    pos, rot = dynamics.site_pose(tree, q, site)
+    return SiteDynamics(
+        gravity=dynamics.gravity(tree, q, params, gravity_vector),
+        pos=pos,
+        rot=rot,
+        jac=dynamics.site_jacobian(tree, q, site),
+        mass=dynamics.mass_matrix(tree, q, params),
+    )
+
+
+def cholesky_solve_lower(m: jax.Array, b: jax.Array) -> jax.Array:
+    """W = L^-1 B for M = L L^T (symmetric positive definite M (n, n), B (n, k)).
+
+    Then B^T M^-1 B = W^T W: one Cholesky factorisation and one forward substitution give
+    J M^-1 J^T and J M^-1 tau with no inverse. Written out entry by entry (n is small and
+    static), which XLA fuses into a few loops instead of LAPACK calls.
+    """
+    n = m.shape[0]
+    low = [[None] * n for _ in range(n)]
+    inv_diag = [None] * n
+    for j in range(n):
+        d = m[j, j]
+        for k in range(j):
+            d = d - low[j][k] * low[j][k]
+        inv_diag[j] = jax.lax.rsqrt(d)
+        for i in range(j + 1, n):
+            s = m[i, j]
+            for k in range(j):
+                s = s - low[i][k] * low[j][k]
+            low[i][j] = s * inv_diag[j]
+    w = [None] * n
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s = s - low[i][k] * w[k]
+        w[i] = s * inv_diag[i]
+    return jnp.stack(w)
+
+
+def spd_solve(m: jax.Array, b: jax.Array) -> jax.Array:
+    """X = M^-1 B for symmetric positive definite M (LAPACK Cholesky; feedforward only)."""
+    low = jnp.linalg.cholesky(m)
+    return jax.scipy.linalg.cho_solve((low, True), b)
+
+
+def coriolis_times(
+    tree: KinematicTree, q: jax.Array, dq: jax.Array, w: jax.Array, params: InertialParams
+) -> jax.Array:
+    """C(q, dq) w (n,) for the Christoffel Coriolis matrix C (``dynamics.coriolis_matrix``):
+    0.5 (M_dot(dq) w + M_dot(w) dq - d/dq (w^T M dq)), two JVPs and one gradient of M instead
+    of its full Jacobian (faster to compile and run)."""
+
+    def mass(qq):
+        return dynamics.mass_matrix(tree, qq, params)
+
+    m_dot_dq = jax.jvp(mass, (q,), (dq,))[1]
+    m_dot_w = jax.jvp(mass, (q,), (w,))[1]
+    grad = jax.grad(lambda qq: w @ mass(qq) @ dq)(q)
+    return 0.5 * (m_dot_dq @ w + m_dot_w @ dq - grad)
+
+
+def inverse3(a: jax.Array) -> jax.Array:
+    """Inverse of a 3x3 matrix by its adjugate (cross products of rows): no LAPACK call."""
+    c0, c1, c2 = jnp.cross(a[1], a[2]), jnp.cross(a[2], a[0]), jnp.cross(a[0], a[1])
+    return jnp.stack([c0, c1, c2], axis=1) / jnp.dot(a[0], c0)
+
+
+def orientation_error(rot: jax.Array, target_rot: jax.Array) -> jax.Array:
+    """(3,) rad, base frame: rotation vector taking ``rot`` to ``target_rot`` (small angles;
+    0.5 sum_i rot[:, i] x target_rot[:, i] = sin(angle) axis for a rotation about one axis)."""
+    return 0.5 * jnp.sum(jnp.cross(rot.T, target_rot.T), axis=0)
+
+
+def clip_error(err, deadband: float, clip: float, xp=jnp):
+    """(error after deadband and norm clip, clipped flag): zero below ``deadband`` m, norm cut
+    to ``clip`` m above it."""
+    norm = xp.sqrt(xp.sum(err * err))
+    scale = xp.where(norm < deadband, 0.0, clip / xp.maximum(norm, clip))
+    return err * scale, norm > clip
+
+
+def limit_current(raw, prev, max_step, limit, xp=jnp):
+    """(current, rate_limited, saturated): ``raw`` A moved at most ``max_step`` A from ``prev``,
+    then within +-``limit`` A."""
+    stepped = xp.clip(raw, prev - max_step, prev + max_step)
+    out = xp.clip(stepped, -limit, limit)
+    return out, stepped != raw, out != stepped
+
+
+# ----------------------------------------------------------------------------- controller
+
+
+def check_joint_vector(x, n: int, name: str, robot: Robot) -> np.ndarray:
+    """x as a finite float array (n,), or InputError naming the input and the joints."""
+    arr = np.asarray(x, dtype=float)
+    if arr.shape != (n,):
+        raise InputError(
+            f"{name} must have shape ({n},) for {robot.name} "
+            f"(joints {', '.join(robot.joint_names)}), got shape {arr.shape}"
+        )
+    if not np.all(np.isfinite(arr)):
+        bad = [robot.joint_names[i] for i in np.flatnonzero(~np.isfinite(arr))]
+        raise InputError(f"{name} contains NaN or inf at joint(s) {', '.join(bad)}")
+    return arr
+
+
+def check_vector3(x, name: str, unit: str) -> np.ndarray:
+    """x as a finite float array (3,), or InputError naming the input."""
+    arr = np.asarray(x, dtype=float)
+    if arr.shape != (3,):
+        raise InputError(f"{name} must have shape (3,) (x, y, z in {unit}), got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{name} contains NaN or inf: {arr.tolist()}")
+    return arr
+
+
+class _Resolved(NamedTuple):
+    """Everything both implementations need, as numpy constants."""
+
+    tree: KinematicTree
+    site: int
+    inertial: InertialParams  # numpy arrays
+    gravity_vector: np.ndarray  # (3,) m/s^2
+    ratio: np.ndarray
+    friction: np.ndarray
+    joint: JointGains
+
+
+def _resolve(
+    robot: Robot, params: RobotParams | None, gains: ImpedanceGains, site: str
+) -> _Resolved:
+    if not isinstance(gains, ImpedanceGains):
+        raise InputError(f"gains must be an ImpedanceGains, got {type(gains).__name__}")
+    joint = gains.joint_arrays(robot)  # also refuses a robot with base joints
+    params = RobotParams.nominal(robot) if params is None else params
+    if not isinstance(params, RobotParams):
+        raise InputError(f"params must be a RobotParams or None, got {type(params).__name__}")
+    if params.model != robot.name:
+        raise InputError(f"params are for model {params.model!r}, the robot is {robot.name!r}")
+    inertial = InertialParams(*(np.asarray(x, dtype=float) for x in params.inertial_params(robot)))
+    return _Resolved(
+        tree=robot.tree,
+        site=robot.site_index(site),
+        inertial=inertial,
+        gravity_vector=np.asarray(robot.default_gravity, dtype=float),
+        ratio=params.ratio.copy(),
+        friction=params.friction.copy(),
+        joint=joint,
+    )
+
+
+def impedance_step_fn(res: _Resolved, gains: ImpedanceGains):
+    """The pure (unjitted) step function of the controller; see ``ImpedanceController.step``."""
+    tree, site, inertial, grav = res.tree, res.site, res.inertial, res.gravity_vector
+    k_d, d_d = np.asarray(gains.stiffness), np.asarray(gains.damping)
+    k_o, d_o = np.asarray(gains.orientation_stiffness), np.asarray(gains.orientation_damping)
+    q_pref, k_n, d_n, limit = res.joint
+    ratio, friction, threshold = res.ratio, res.friction, gains.friction_threshold
+    eps = gains.singularity_damping * np.eye(3)
+    max_step = gains.max_current_step
+    orientation, feedforward = gains.orientation, gains.feedforward
+
+    def step(q, dq, target_pos, target_vel, target_acc, prev_current, target_rot=None):
+        sd = site_dynamics(tree, q, site, inertial, grav)
+        jac = sd.jac[:3]
+        error, clipped = clip_error(target_pos - sd.pos, gains.deadband, gains.error_clip)
+        force = k_d * error + d_d * (target_vel - jac @ dq)
+        tau2 = k_n * (q_pref - q) - d_n * dq
+        if orientation:
+            if target_rot is None:
+                raise InputError("orientation gains are set: step needs target_rot (3, 3)")
+            jac_w = sd.jac[3:]
+            moment = k_o * orientation_error(sd.rot, target_rot) - d_o * (jac_w @ dq)
+            tau2 = tau2 + jac_w.T @ moment
+        # one Cholesky M = L L^T; W = L^-1 [J^T, tau_2]; W^T W = [J, tau_2]^T M^-1 [J^T, tau_2]
+        w = cholesky_solve_lower(sd.mass, jnp.concatenate([jac.T, tau2[:, None]], axis=1))
+        gram = w[:, :3].T @ w
+        lam = inverse3(gram[:, :3] + eps)  # Lambda = (J M^-1 J^T)^-1
+        # N^T tau_2 = tau_2 - J^T Lambda J M^-1 tau_2
+        f_total = force - lam @ gram[:, 3]
+        if feedforward:
+            jac_bar = spd_solve(sd.mass, jac.T) @ lam
+            jac_dot = jax.jvp(lambda qq: dynamics.site_jacobian(tree, qq, site)[:3], (q,), (dq,))[1]
+            v_bar = jac_bar @ target_vel
+            cor_v = coriolis_times(tree, q, dq, v_bar, inertial)
+            ff = lam @ target_acc + jac_bar.T @ cor_v - lam @ (jac_dot @ v_bar)
+            force = force + ff
+            f_total = f_total + ff
+        tau = jac.T @ f_total + tau2 + sd.gravity
+        raw = current_model.current(tau, dq, ratio, friction, threshold)
+        cur, rate_limited, saturated = limit_current(raw, prev_current, max_step, limit)
+        diag = pack_diagnostics(sd.pos, error, force, tau, raw, rate_limited, saturated, clipped)
+        return cur, diag
+
+    return step
+
+
+class ImpedanceController:
+    """Current-based impedance controller of one robot, params and gains (see module doc).
+
+    Attributes:
+        robot, params (RobotParams), gains, site (name), n (joints), joint (JointGains:
+        posture rad, K_n, D_n, current limit A).
+        step: jitted pure function ``step(q, dq, target_pos, target_vel, target_acc,
+            prev_current[, target_rot]) -> (current (n,) A, Diagnostics)``; q rad (n,),
+            dq rad/s (n,), target_pos m (3,), target_vel m/s (3,), target_acc m/s^2 (3,),
+            prev_current A (n,) (the last command, for the rate limit), target_rot (3, 3)
+            only with orientation gains; arm base frame. No input checks: pass device arrays
+            (``check_state`` makes them), e.g. the previous step's current as it is.
+        step_fn: the same function unjitted (to compose, vmap or jit with more).
+    """
+
+    def __init__(
+        self,
+        robot: Robot,
+        params: RobotParams | None = None,
+        gains: ImpedanceGains | None = None,
+        site: str = "end_effector",
+    ):
+        gains = ImpedanceGains() if gains is None else gains
+        self._res = _resolve(robot, params, gains, site)
+        self.robot = robot
+        self.params = RobotParams.nominal(robot) if params is None else params
+        self.gains = gains
+        self.site = site
+        self.n = robot.nv
+        self.joint = self._res.joint
+        self.step_fn = impedance_step_fn(self._res, gains)
+        self.step = jax.jit(self.step_fn)
+
+    def __repr__(self) -> str:
+        return (
+            f"ImpedanceController({self.robot.name!r}, site={self.site!r}, "
+            f"params={self.params.method!r})"
+        )
+
+    def check_state(
+        self,
+        q,
+        dq,
+        target_pos,
+        target_vel=None,
+        target_acc=None,
+        prev_current=None,
+        target_rot=None,
+    ) -> tuple:
+        """Validated device arrays for ``step`` (None: zeros); InputError naming a bad input."""
+        n, r = self.n, self.robot
+        args = [
+            check_joint_vector(q, n, "q (rad)", r),
+            check_joint_vector(dq, n, "dq (rad/s)", r),
+            check_vector3(target_pos, "target_pos", "m"),
+            np.zeros(3) if target_vel is None else check_vector3(target_vel, "target_vel", "m/s"),
+            np.zeros(3) if target_acc is None else check_vector3(target_acc, "target_acc", "m/s^2"),
+            np.zeros(n)
+            if prev_current is None
+            else check_joint_vector(prev_current, n, "prev_current (A)", r),
+        ]
+        if self.gains.orientation:
+            if target_rot is None:
+                raise InputError("orientation gains are set: target_rot (3, 3) is needed")
+            rot = np.asarray(target_rot, dtype=float)
+            if rot.shape != (3, 3) or not np.all(np.isfinite(rot)):
+                raise InputError(f"target_rot must be a finite (3, 3) rotation matrix, got {rot}")
+            args.append(rot)
+        return tuple(jnp.asarray(a) for a in args)
+
+    def checked_step(
+        self,
+        q,
+        dq,
+        target_pos,
+        target_vel=None,
+        target_acc=None,
+        prev_current=None,
+        target_rot=None,
+    ):
+        """``step`` after ``check_state``: for interactive use, not the 1 kHz loop."""
+        return self.step(
+            *self.check_state(q, dq, target_pos, target_vel, target_acc, prev_current, target_rot)
+        )
+
+    def compile(self) -> float:
+        """Compile ``step`` now (at the preferred pose); returns the seconds it took."""
+        t0 = time.perf_counter()
+        state = self.check_state(
+            self.joint.posture, np.zeros(self.n), np.zeros(3), target_rot=np.eye(3)
+        )
+        jax.block_until_ready(self.step(*state))
+        return time.perf_counter() - t0
+
+
+def make_impedance_controller(
+    robot: Robot,
+    params: RobotParams | None = None,
+    gains: ImpedanceGains | None = None,
+    site: str = "end_effector",
+) -> ImpedanceController:
+    """An ``ImpedanceController`` for ``robot`` (the arm's own model, base frame).
+
+    ``params``: identified ratio, friction and COM offsets (None: the model's nominal ratios,
+    no friction, nominal COM). ``gains``: default ``ImpedanceGains()`` (the paper's).
+    """
+    return ImpedanceController(robot, params, gains, site)
+
+
+# ----------------------------------------------------------------------------- pinocchio
+
+
+class ImpedanceControllerPinocchio:
+    """The same control law in pinocchio + numpy (reference and latency baseline).
+
+    ``step`` takes and returns numpy arrays, same arguments and results as
+    ``ImpedanceController.step``. The pinocchio model is built from ``jaxcomp.urdf.to_urdf``
+    of the identified (COM-corrected) inertials.
+    """
+
+    def __init__(
+        self,
+        robot: Robot,
+        params: RobotParams | None = None,
+        gains: ImpedanceGains | None = None,
+        site: str = "end_effector",
+    ):
+        import pinocchio as pin
+
+        from jaxcomp.urdf import to_urdf
+
+        gains = ImpedanceGains() if gains is None else gains
+        self._res = res = _resolve(robot, params, gains, site)
+        self.robot, self.gains, self.site, self.n = robot, gains, site, robot.nv
+        self._pin = pin
+        self.model = pin.buildModelFromXML(to_urdf(res.tree, res.inertial, robot.name))
+        self.model.gravity.linear = res.gravity_vector
+        self.data = self.model.createData()
+        names = list(self.model.names)[1:]
+        if sorted(names) != sorted(robot.joint_names) or self.model.nq != self.n:
+            raise InputError(f"pinocchio model of {robot.name} does not match its joints")
+        self._perm = np.array([names.index(nm) for nm in robot.joint_names])
+        self._identity = bool(np.all(self._perm == np.arange(self.n)))
+        self._frame = self.model.getFrameId(site)
+        self._lwa = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+        self._eye = gains.singularity_damping * np.eye(3)
+        self._lower = np.tril_indices(self.n, -1)
+
+    def _to_pin(self, x: np.ndarray) -> np.ndarray:
+        if self._identity:
+            return x
+        out = np.empty(self.n)
+        out[self._perm] = x
+        return out
+
+    def _from_pin(self, x: np.ndarray) -> np.ndarray:
+        return x if self._identity else x[..., self._perm]
+
+    def step(self, q, dq, target_pos, target_vel, target_acc, prev_current, target_rot=None):
+        """(current (n,) A, Diagnostics) for numpy inputs; see ``ImpedanceController.step``."""
+        pin, pm, pd, g, res = self._pin, self.model, self.data, self.gains, self._res
+        qp, vp = self._to_pin(np.asarray(q, float)), self._to_pin(np.asarray(dq, float))
+        grav = self._from_pin(pin.computeGeneralizedGravity(pm, pd, qp))
+        mass = pin.crba(pm, pd, qp)  # upper triangle filled
+        mass[self._lower] = mass.T[self._lower]
+        if not self._identity:
+            mass = mass[np.ix_(self._perm, self._perm)]
+        jac6 = self._from_pin(pin.computeFrameJacobian(pm, pd, qp, self._frame, self._lwa))
+        frame = pd.oMf[self._frame]
+        pos, jac = frame.translation.copy(), jac6[:3]
+        error, clipped = clip_error(target_pos - pos, g.deadband, g.error_clip, np)
+        force = np.asarray(g.stiffness) * error + np.asarray(g.damping) * (target_vel - jac @ dq)
+        k_n, d_n = res.joint.stiffness, res.joint.damping
+        tau2 = k_n * (res.joint.posture - q) - d_n * dq
+        if g.orientation:
+            jac_w = jac6[3:]
+            e_o = 0.5 * np.sum(np.cross(frame.rotation.T, np.asarray(target_rot).T), axis=0)
+            moment = np.asarray(g.orientation_stiffness) * e_o
+            moment = moment - np.asarray(g.orientation_damping) * (jac_w @ dq)
+            tau2 = tau2 + jac_w.T @ moment
+        x = np.linalg.solve(mass, np.concatenate([jac.T, tau2[:, None]], axis=1))
+        lam = np.linalg.inv(jac @ x[:, :3] + self._eye)
+        f_total = force - lam @ (jac @ x[:, 3])
+        if g.feedforward:
+            jac_bar = x[:, :3] @ lam
+            pin.computeJointJacobiansTimeVariation(pm, pd, qp, vp)
+            jac_dot = self._from_pin(
+                pin.getFrameJacobianTimeVariation(pm, pd, self._frame, self._lwa)[:3]
+            )
+            cor = pin.computeCoriolisMatrix(pm, pd, qp, vp)
+            if not self._identity:
+                cor = cor[np.ix_(self._perm, self._perm)]
+            v_bar = jac_bar @ target_vel
+            ff = lam @ target_acc + jac_bar.T @ (cor @ v_bar) - lam @ (jac_dot @ v_bar)
+            force, f_total = force + ff, f_total + ff
+        tau = jac.T @ f_total + tau2 + grav
+        a = np.minimum(np.abs(dq) / g.friction_threshold, 1.0)
+        st = np.sign(tau)
+        raw = res.ratio * tau + res.friction * (a * (np.sign(dq) - st) + st)
+        cur, rate_limited, saturated = limit_current(
+            raw, np.asarray(prev_current, float), g.max_current_step, res.joint.limit, np
+        )
+        diag = pack_diagnostics(pos, error, force, tau, raw, rate_limited, saturated, clipped)
+        return cur, diag

@@ -1,0 +1,795 @@
+"""The 1 kHz control loop: guidance and tracking modes of the mobile manipulator (paper IV-B).
+
+``run_control`` drives an ``Arm`` in CURRENT mode with an impedance controller (or in VELOCITY
+mode with the reference velocity controller) and, when there is one, a ``Base`` with the base
+follower of Eq. (20), for ``duration`` s, and records everything.
+
+Frames (all right-handed, z up, m):
+
+- world: the base's odometry frame (the simulator's world); the base pose (x, y, yaw) is the
+  odometry of the base's planar joints;
+- base: the mobile base's own frame, moving with it (at pose 0 it coincides with the world);
+- arm: the arm's base frame, where the controller works (the arm's own model, e.g.
+  ``gen3_lite``); ``ArmMount`` places it in the base frame, read from the mobile model (the
+  arm's root body with the base joints at zero: Gen3 Lite at (0.160, 0, 0.11) m).
+
+Modes:
+
+- guidance: the target is fixed in the base frame (the trajectory is evaluated in the base
+  frame; default: the end effector's start position), the base follower's p_d is the target,
+  so the base follows when the end effector is pushed and stops when it is back;
+- tracking: the target follows the trajectory in the world frame; p_d is the end effector's
+  start position in the base frame, so the base follows the end effector around.
+
+With orientation gains the end effector's start orientation is held, fixed in the same frame.
+
+Each cycle: the state from the last ``arm.cycle`` is checked by the ``Watchdog``; the base
+odometry turns the target into the arm frame (position; velocity relative to the moving arm
+base; acceleration with the base's acceleration neglected); the controller gives the command;
+the watchdog checks it; the base follower's twist goes to the base; one sample is recorded
+(time, q, dq, measured current, joint -1, direction 0, plus ``target`` (3,) world m, ``ee``
+(3,) world m, ``base`` (3,) x m, y m, yaw rad, ``command`` (n,) A (rad/s for the velocity
+controller): the command computed from this state, sent at the next cycle); then the loop waits
+for the next 1 kHz deadline (real time: absolute ``perf_counter_ns`` ticks, sleep then spin for
+the last 200 us) or goes straight on (lock step with a simulator: deterministic, as fast as the
+CPU allows) and sends it.
+
+Any watchdog trip, hardware fault, Ctrl-C or exception ends the run with the arm in POSITION
+mode and the base stopped, before anything else is done (``safe_stop`` in a ``finally``).
+The recording is written incrementally (``RecordingWriter``, one part per 1000 samples) and
+joined into ``out_dir/recording.npz`` at the end; ``out_dir/timing.json`` holds the timing.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+import queue
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from dataclasses import replace as dc_replace
+from pathlib import Path
+from typing import Any
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from jaxcomp.control.base_follower import BaseFollower
+from jaxcomp.control.gains import BaseGains
+from jaxcomp.control.impedance import ImpedanceController
+from jaxcomp.control.timing import CycleTimer, wait_until
+from jaxcomp.control.trajectory import Static, Trajectory, TrajectorySpec, parse_trajectory
+from jaxcomp.control.velocity import VelocityController
+from jaxcomp.control.watchdog import FAULT, Watchdog, WatchdogTrip, safe_stop
+from jaxcomp.errors import InputError, JaxcompError, ModelError
+from jaxcomp.hardware.interface import Arm, ArmCommand, ArmState, Base, ControlMode, HardwareFault
+from jaxcomp.recording import Recording, RecordingWriter
+from jaxcomp.robot import Robot, load_robot
+from jaxcomp.robot_params import BASE_JOINTS, RobotParams, arm_joint_indices
+
+log = logging.getLogger(__name__)
+
+PERIOD = 0.001  # s, the control period (1 kHz)
+RECORDING = "recording.npz"
+TIMING = "timing.json"
+
+
+class Mode(enum.Enum):
+    """Operational mode (paper IV-B)."""
+
+    GUIDANCE = "guidance"
+    TRACKING = "tracking"
+
+
+# ----------------------------------------------------------------------------- frames
+
+
+def _rz(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class ArmMount:
+    """Where the arm's base frame sits on the mobile base.
+
+    Attributes:
+        position: (3,) m, the arm frame's origin in the base frame.
+        rotation: (3, 3), the arm frame's axes in the base frame (columns).
+        pivot: (3,) m, a point on the base's yaw axis in the base frame (z = 0).
+
+    A point p_b of the base frame is, with the base at odometry pose (x, y, yaw), at
+    (x, y, 0) + pivot + Rz(yaw) (p_b - pivot) in the world.
+    """
+
+    position: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    pivot: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @classmethod
+    def from_model(cls, robot: Robot | str) -> ArmMount:
+        """The mount of a mobile model (base joints ``base_x``, ``base_y``, ``base_yaw``):
+        the pose of the arm's root body (the base body's child that carries the arm joints)
+        with every joint at zero. A model without base joints: identity (arm frame = world)."""
+        robot = load_robot(robot)
+        names = robot.joint_names
+        if not any(b in names for b in BASE_JOINTS):
+            return cls()
+        if not all(b in names for b in BASE_JOINTS):
+            raise ModelError(f"{robot.name} has only some of the base joints {BASE_JOINTS}")
+        m = robot.model
+        d = mujoco.MjData(m)
+        mujoco.mj_kinematics(m, d)
+        jid = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, b) for b in BASE_JOINTS]
+        base_body = int(m.jnt_bodyid[jid[0]])
+        if any(int(m.jnt_bodyid[j]) != base_body for j in jid):
+            raise ModelError(f"{robot.name}: the base joints must all move one body")
+        axes = [d.xaxis[j] for j in jid]
+        types = [int(m.jnt_type[j]) for j in jid]
+        slide, hinge = mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE
+        expect = [(slide, [1, 0, 0]), (slide, [0, 1, 0]), (hinge, [0, 0, 1])]
+        for j, (ty, ax), (want_ty, want_ax) in zip(
+            jid, zip(types, axes, strict=True), expect, strict=True
+        ):
+            if ty != want_ty or not np.allclose(ax, want_ax, atol=1e-9):
+                raise ModelError(
+                    f"{robot.name}: base joint {m.joint(j).name} must be a "
+                    f"{'slide' if want_ty == slide else 'hinge'} along world {want_ax}"
+                )
+        arm_joint = arm_joint_indices(robot)[0]
+        body = int(m.jnt_bodyid[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, names[arm_joint])])
+        root = body
+        while int(m.body_parentid[root]) != base_body:
+            root = int(m.body_parentid[root])
+            if root == 0:
+                raise ModelError(f"{robot.name}: the arm is not carried by the base body")
+        pivot = np.array([*d.xanchor[jid[2]][:2], 0.0])
+        return cls(d.xpos[root].copy(), d.xmat[root].reshape(3, 3).copy(), pivot)
+
+    def __post_init__(self) -> None:
+        for name in ("position", "rotation", "pivot"):
+            object.__setattr__(self, name, np.array(getattr(self, name), dtype=float))
+        object.__setattr__(self, "_identity", bool(np.array_equal(self.rotation, np.eye(3))))
+        object.__setattr__(self, "_no_pivot", not self.pivot.any())
+
+    @property
+    def identity_rotation(self) -> bool:
+        """Whether the arm frame's axes are the base frame's."""
+        return self._identity
+
+    # ---- poses
+    def arm_pose(self, base_pose) -> tuple[np.ndarray, np.ndarray]:
+        """(origin (3,) m, rotation (3, 3)) of the arm frame in the world."""
+        rz = _rz(float(base_pose[2]))
+        origin = self._base_origin(base_pose) + rz @ self.position
+        return origin, rz @ self.rotation
+
+    def _base_origin(self, base_pose) -> np.ndarray:
+        """World position of the base frame's origin at ``base_pose``."""
+        if self._no_pivot:
+            return np.array([base_pose[0], base_pose[1], 0.0])
+        rz = _rz(float(base_pose[2]))
+        return np.array([base_pose[0], base_pose[1], 0.0]) + self.pivot - rz @ self.pivot
+
+    # ---- points
+    def base_to_world(self, p, base_pose) -> np.ndarray:
+        return self._base_origin(base_pose) + _rz(float(base_pose[2])) @ p
+
+    def world_to_base(self, p, base_pose) -> np.ndarray:
+        return _rz(float(base_pose[2])).T @ (p - self._base_origin(base_pose))
+
+    def arm_to_base(self, p) -> np.ndarray:
+        if self._identity:
+            return self.position + p
+        return self.position + self.rotation @ p
+
+    def base_to_arm(self, p) -> np.ndarray:
+        return self.rotation.T @ (p - self.position)
+
+    def arm_to_world(self, p, base_pose) -> np.ndarray:
+        return self.base_to_world(self.arm_to_base(p), base_pose)
+
+    def world_to_arm(self, p, base_pose) -> np.ndarray:
+        return self.base_to_arm(self.world_to_base(p, base_pose))
+
+
+def arm_model(robot: Robot | str) -> Robot:
+    """The arm-alone model the controllers work in: ``robot`` itself without base joints, else
+    the model named by its ``jaxcomp_arm_model`` custom text, else the built-in name without
+    its ``mobile_`` prefix (``mobile_gen3_lite`` -> ``gen3_lite``)."""
+    robot = load_robot(robot)
+    if not any(b in robot.joint_names for b in BASE_JOINTS):
+        return robot
+    name = robot.custom_text("jaxcomp_arm_model")
+    if name is None and robot.name.startswith("mobile_"):
+        name = robot.name.removeprefix("mobile_")
+    if name is None:
+        raise ModelError(
+            f"{robot.name} has base joints; name its arm-alone model in a custom text "
+            "'jaxcomp_arm_model'"
+        )
+    arm = load_robot(name)
+    want = tuple(robot.joint_names[j] for j in arm_joint_indices(robot))
+    if arm.joint_names != want:
+        raise ModelError(f"{arm.name}'s joints {arm.joint_names} are not {robot.name}'s {want}")
+    return arm
+
+
+def arm_params(params: RobotParams | None, arm: Robot) -> RobotParams | None:
+    """``params`` (e.g. identified on the mobile model) re-labelled for the arm-alone model
+    ``arm`` (same joints and links: checked); None stays None (nominal)."""
+    if params is None or params.model == arm.name:
+        return params
+    return dc_replace(params, model=arm.name).check(arm)
+
+
+# ----------------------------------------------------------------------------- control laws
+
+
+class _Law:
+    """Adapter of a controller to the loop: mode, command, end-effector position (arm frame)."""
+
+    def __init__(self, controller, arm: Arm):
+        self.controller = controller
+        if isinstance(controller, ImpedanceController):
+            self.mode = ControlMode.CURRENT
+            self.saturation = np.minimum(controller.joint.limit, arm.limits.current)
+            self.limit = arm.limits.current.copy()
+            self.unit = "A"
+        elif isinstance(controller, VelocityController):
+            self.mode = ControlMode.VELOCITY
+            self.saturation = None
+            self.limit = arm.limits.velocity.copy()
+            self.unit = "rad/s"
+        else:
+            raise InputError(
+                "controller must be an ImpedanceController or a VelocityController, got "
+                f"{type(controller).__name__}"
+            )
+        if controller.n != arm.n:
+            raise InputError(f"the controller has {controller.n} joints, the arm {arm.n}")
+        self._prev = None
+
+    def start(self, state: ArmState) -> None:
+        """Reset the command memory to what the arm applies when it switches (measured
+        current, clipped to the limits; zero velocity)."""
+        if self.mode is ControlMode.CURRENT:
+            self._prev = jnp.asarray(np.clip(state.current, -self.limit, self.limit))
+
+    @property
+    def orientation(self) -> bool:
+        """Whether the controller holds an orientation (needs ``rot``)."""
+        gains = getattr(self.controller, "gains", None)
+        return bool(getattr(gains, "orientation", False))
+
+    def step(self, q, dq, pos, vel, acc, rot=None) -> tuple[np.ndarray, np.ndarray]:
+        """(command (n,) A or rad/s, end-effector position (3,) m, arm frame); ``rot`` (3, 3):
+        the target orientation in the arm frame (orientation gains only)."""
+        if self.mode is ControlMode.CURRENT:
+            if rot is None:
+                cur, diag = self.controller.step(q, dq, pos, vel, acc, self._prev)
+            else:
+                cur, diag = self.controller.step(q, dq, pos, vel, acc, self._prev, rot)
+            self._prev = cur
+            return np.asarray(cur), np.asarray(diag.data)[:3]
+        dq_cmd, diag = self.controller.step(q, pos, vel)
+        return np.asarray(dq_cmd), np.asarray(diag.data)[:3]
+
+    def command(self, value: np.ndarray) -> ArmCommand:
+        if self.mode is ControlMode.CURRENT:
+            return ArmCommand(current=value)
+        return ArmCommand(velocity=value)
+
+
+# ----------------------------------------------------------------------------- recording
+
+
+_EXTRA = {"target": (3,), "ee": (3,), "base": (3,)}
+
+
+class _Recorder:
+    """Per-sample rows into preallocated blocks of ``block`` samples, each full block handed
+    to ``RecordingWriter`` (which flushes it to a part file): on a writer thread in real time
+    (the loop never waits for the disk), inline in lock step (deterministic)."""
+
+    def __init__(self, writer: RecordingWriter, n: int, block: int, threaded: bool):
+        self.writer, self.n, self.block = writer, n, block
+        self._new()
+        self._error: BaseException | None = None
+        self._queue: queue.Queue | None = None
+        self._thread = None
+        if threaded:
+            self._queue = queue.Queue()
+            self._thread = threading.Thread(target=self._run, name="jaxcomp-recorder", daemon=True)
+            self._thread.start()
+
+    def _new(self) -> None:
+        b, n = self.block, self.n
+        self.t = np.zeros(b)
+        self.q, self.dq, self.cur, self.cmd = (np.zeros((b, n)) for _ in range(4))
+        self.target, self.ee, self.base = (np.zeros((b, 3)) for _ in range(3))
+        self.i = 0
+
+    def add(self, t, q, dq, current, target, ee, base, command) -> None:
+        i = self.i
+        self.t[i] = t
+        self.q[i], self.dq[i], self.cur[i], self.cmd[i] = q, dq, current, command
+        self.target[i], self.ee[i], self.base[i] = target, ee, base
+        self.i = i + 1
+        if self.i == self.block:
+            self._emit()
+
+    def _emit(self) -> None:
+        if self.i == 0:
+            return
+        k = self.i
+        rows = (
+            self.t[:k],
+            self.q[:k],
+            self.dq[:k],
+            self.cur[:k],
+            self.target[:k],
+            self.ee[:k],
+            self.base[:k],
+            self.cmd[:k],
+        )
+        self._new()
+        if self._queue is not None:
+            self._queue.put(rows)
+        else:
+            self._write(rows)
+
+    def _write(self, rows) -> None:
+        append = self.writer.append
+        for t, q, dq, c, tg, ee, b, cmd in zip(*rows, strict=True):
+            append(t, q, dq, c, -1, 0, target=tg, ee=ee, base=b, command=cmd)
+
+    def _run(self) -> None:
+        while True:
+            rows = self._queue.get()
+            if rows is None:
+                return
+            try:
+                self._write(rows)
+            except BaseException as exc:  # noqa: BLE001 - reported by close()
+                self._error = exc
+                return
+
+    def close(self) -> Recording:
+        """Write what is left, wait for the writer thread, join the parts."""
+        self._emit()
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self.writer.close()
+
+
+# ----------------------------------------------------------------------------- result
+
+
+@dataclass
+class ControlResult:
+    """How a run ended and what it measured.
+
+    Attributes:
+        kind: "completed", "interrupted" (Ctrl-C), a watchdog trip kind
+            (``control.watchdog``), "hardware_fault", "command_refused" or "error".
+        reason: one readable line.
+        cycles: ``arm.cycle`` calls made (the last may be the one that tripped).
+        duration: s of robot time controlled (to the last state received).
+        rms_error: m, RMS of |ee - target| over the run (world frame). final_error: m, the
+            last sample's. max_error: m.
+        recording: the joined ``Recording`` (None if nothing was recorded).
+        out_dir, recording_path, timing_path: where the files are.
+        timing: ``CycleTimer.summary()``.
+        stop_errors: problems met while stopping (empty when the stop was clean).
+    """
+
+    kind: str
+    reason: str
+    cycles: int = 0
+    duration: float = 0.0
+    rms_error: float = math.nan
+    final_error: float = math.nan
+    max_error: float = math.nan
+    recording: Recording | None = None
+    out_dir: Path | None = None
+    recording_path: Path | None = None
+    timing_path: Path | None = None
+    timing: dict = field(default_factory=dict)
+    stop_errors: list[str] = field(default_factory=list)
+    trajectory: str = ""
+    mode: str = ""
+
+    @property
+    def ok(self) -> bool:
+        """True when the run completed or was interrupted by the user (no fault)."""
+        return self.kind in ("completed", "interrupted")
+
+    def summary(self) -> str:
+        """A few readable lines: how it ended, tracking error, timing."""
+        tm = self.timing
+        lines = [
+            f"{self.mode} mode, {self.trajectory}",
+            f"ended: {self.kind} ({self.reason})",
+            f"duration {self.duration:.3f} s, {self.cycles} cycles",
+            f"tracking error |ee - target|: RMS {1e3 * self.rms_error:.2f} mm, "
+            f"max {1e3 * self.max_error:.2f} mm, final {1e3 * self.final_error:.2f} mm",
+        ]
+        if tm.get("cycles"):
+            c, p = tm["compute"], tm["period"]
+            speed = tm.get("speed_x_realtime")
+            lines.append(
+                f"timing ({tm['mode']}): compute median {c['median_us']:.0f} us, p99 "
+                f"{c['p99_us']:.0f} us, max {c['max_us']:.0f} us; period median "
+                f"{p.get('median_us', math.nan):.0f} us, p99 {p.get('p99_us', math.nan):.0f} us,"
+                f" max {p.get('max_us', math.nan):.0f} us; missed deadlines "
+                f"{tm['missed_deadlines']} ({100 * tm['missed_fraction']:.2f} %)"
+                + (f"; {speed:.1f}x real time" if speed else "")
+            )
+        if self.recording_path is not None:
+            lines.append(f"recording: {self.recording_path}")
+        if self.timing_path is not None:
+            lines.append(f"timing: {self.timing_path}")
+        lines += [f"stop problem: {e}" for e in self.stop_errors]
+        return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- the loop
+
+
+def run_control(
+    arm: Arm,
+    base: Base | None,
+    controller: ImpedanceController | VelocityController,
+    mode: Mode | str = Mode.GUIDANCE,
+    trajectory: TrajectorySpec | Trajectory | str | None = None,
+    duration: float | None = None,
+    out_dir: str | Path = "control_run",
+    realtime: bool = False,
+    *,
+    mount: ArmMount | None = None,
+    base_gains: BaseGains | None = None,
+    model: str | None = None,
+    watchdog: Watchdog | None = None,
+    max_saturated_cycles: int = 250,
+    base_velocity_compensation: bool = True,
+    on_cycle: Callable[[int, ArmState, np.ndarray, np.ndarray], None] | None = None,
+    default_duration: float = 10.0,
+) -> ControlResult:
+    """Run guidance or tracking mode for ``duration`` s (see the module doc).
+
+    Args:
+        arm: the arm (its state must be healthy and still; it is switched to the controller's
+            mode here and always ends in POSITION mode).
+        base: the mobile base, or None (arm alone: base frame = world frame).
+        controller: ``make_impedance_controller(arm_model, ...)`` (CURRENT mode) or
+            ``make_velocity_controller`` (VELOCITY mode), on the arm-alone model.
+        mode: "guidance" (target fixed in the base frame) or "tracking" (world frame).
+        trajectory: spec string, ``TrajectorySpec`` (resolved at the start), a built
+            ``Trajectory`` (in the mode's frame), or None (``static``: hold the start).
+        duration: s of control; None: the trajectory's duration, or ``default_duration`` s
+            when it has none (static, endless circle).
+        out_dir: directory for ``recording.npz`` and ``timing.json`` (created).
+        realtime: pace on absolute 1 kHz wall-clock deadlines; False: lock step, as fast as
+            possible (for a simulator).
+        mount: the arm's mount on the base; default ``ArmMount.from_model(model)`` when there
+            is a base, identity otherwise.
+        base_gains: base follower gains (default the paper's ``BaseGains()``).
+        model: the recording's ``model`` field and the model the mount is read from; default
+            the controller's robot (with a base: "mobile_gen3_lite" for "gen3_lite").
+        watchdog: default: current limit = the arm's limits, saturation at the controller's
+            limit for ``max_saturated_cycles`` cycles, no stale tolerance, loop-stall limit
+            20 ms in real time.
+        base_velocity_compensation: give the controller the target's velocity relative to
+            the moving arm base (from the odometry twist); False: the target's own velocity.
+        on_cycle: called each cycle as ``on_cycle(k, state, command, target)`` (target: (3,)
+            world m) after the command is computed and checked and before it is sent (for
+            viewers and tests; keep it short: it runs inside the 1 ms budget).
+
+    Returns a ``ControlResult``; raises only on setup errors (``JaxcompError``, nothing was
+    switched) and on unexpected exceptions (after the safe stop and saving the recording).
+    """
+    mode = Mode(mode.value if isinstance(mode, Mode) else str(mode).lower())
+    law = _Law(controller, arm)
+    robot = controller.robot
+    if model is None:
+        model = robot.name
+        if base is not None and not robot.name.startswith("mobile_"):
+            try:
+                load_robot("mobile_" + robot.name)
+                model = "mobile_" + robot.name
+            except JaxcompError:
+                pass
+    if mount is None:
+        mount = ArmMount.from_model(model) if base is not None else ArmMount()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    wd = watchdog or Watchdog(
+        arm.joint_names,
+        law.limit,
+        law.saturation,
+        max_saturated_cycles=max_saturated_cycles,
+        max_gap=0.02 if realtime else None,
+        unit=law.unit,
+    )
+    follower = BaseFollower(base_gains, base.limits) if base is not None else None
+
+    # ---- the start: healthy, still
+    state = arm.read()
+    wd.check_state(state)
+    if arm.closed:
+        raise HardwareFault("the arm is closed")
+    fast = np.abs(state.dq) > arm.limits.switch_speed
+    if fast.any():
+        j = int(np.flatnonzero(fast)[0])
+        raise InputError(
+            f"{arm.joint_names[j]} moves at {state.dq[j]:.3f} rad/s: the arm must be still "
+            f"(below {arm.limits.switch_speed:.3f} rad/s) to start"
+        )
+    odom0 = base.odometry() if base is not None else None
+    pose0 = np.array(odom0.pose, float) if odom0 is not None else np.zeros(3)
+    if odom0 is not None:
+        wd.check_odometry(odom0.pose, odom0.twist, state.t)
+    ee0, rot0 = (np.asarray(x, dtype=float) for x in robot.site_pose(state.q, controller.site))
+    guidance = mode is Mode.GUIDANCE
+    if guidance:  # trajectory frame = base frame
+        start, origin, rot = mount.arm_to_base(ee0), mount.position, mount.rotation
+    else:
+        start = mount.arm_to_world(ee0, pose0)
+        origin, rot = mount.arm_pose(pose0)
+    if trajectory is None:
+        traj: Trajectory = Static(start, description="static at the start position")
+    elif isinstance(trajectory, Trajectory):
+        traj = trajectory
+    else:
+        spec = parse_trajectory(trajectory) if isinstance(trajectory, str) else trajectory
+        traj = spec.build(start, origin, rot)
+    if duration is None:
+        duration = traj.duration if 0 < traj.duration < math.inf else default_duration
+    duration = float(duration)
+    if not (math.isfinite(duration) and duration > 0):
+        raise InputError(f"duration must be a positive number of s, got {duration}")
+    n_cycles = int(round(duration / PERIOD))
+    desired_b = mount.arm_to_base(ee0)  # tracking: the base keeps the EE where it started
+
+    # ---- compile and check the first command before anything is switched
+    work = _Cycle(
+        law,
+        wd,
+        traj,
+        state.t,
+        base,
+        follower,
+        mount,
+        guidance,
+        desired_b,
+        None,
+        base_velocity_compensation,
+    )
+    if law.orientation:
+        work.hold_orientation(rot0, pose0)
+    law.start(state)
+    pos, vel, acc, _, _, rz, _ = _targets(traj, 0.0, pose0, np.zeros(3), mount, guidance, False)
+    cmd0, _ = law.step(state.q, state.dq, pos, vel, acc, work.rot(rz))
+    wd.check_command(cmd0, state.t)
+    law.start(state)
+
+    writer = RecordingWriter(
+        out / RECORDING,
+        model,
+        arm.n,
+        extra={**_EXTRA, "command": (arm.n,)},
+        flush_every=1000,
+        require_sweep=False,
+    )
+    recorder = _Recorder(writer, arm.n, 1000, threaded=realtime)
+    timer = CycleTimer(PERIOD, capacity=n_cycles + 2, realtime=realtime)
+    kind, reason = "completed", f"ran the full {duration:g} s"
+    stop_errors: list[str] = []
+    cycles = 0
+    t0 = state.t
+    unexpected: BaseException | None = None
+    switch_interval = sys.getswitchinterval()
+    work.recorder = recorder
+    period_ns = int(PERIOD * 1e9)
+    try:
+        if realtime:
+            sys.setswitchinterval(1e-4)  # the recorder thread yields the GIL quickly
+        arm.set_modes(law.mode)
+        law.start(state)
+        cmd = work(state)
+        if on_cycle is not None:
+            on_cycle(0, state, cmd, work.target_w)
+        deadline = time.perf_counter_ns() + period_ns
+        for k in range(1, n_cycles + 1):
+            if realtime:
+                wait_until(deadline)
+            cycles = k
+            sent = time.perf_counter_ns()
+            state = arm.cycle(law.command(cmd))
+            recv = time.perf_counter_ns()
+            wd.check_state(state, recv if realtime else None)
+            cmd = work(state)
+            if on_cycle is not None:
+                on_cycle(k, state, cmd, work.target_w)
+            done = time.perf_counter_ns()
+            deadline += period_ns  # the next send: the command must be ready by then
+            timer.record(sent, recv, done, deadline if realtime else sent + period_ns)
+            if realtime and done > deadline:  # a whole tick lost: skip it, keep the phase
+                deadline += -(-(done - deadline) // period_ns) * period_ns
+    except WatchdogTrip as exc:
+        kind, reason = exc.kind, str(exc)
+    except HardwareFault as exc:
+        kind, reason = "hardware_fault", str(exc)
+    except InputError as exc:  # the arm refused a command (the watchdog should have caught it)
+        kind, reason = "command_refused", str(exc)
+    except KeyboardInterrupt:
+        kind, reason = "interrupted", "Ctrl-C"
+    except BaseException as exc:
+        kind, reason = "error", f"{type(exc).__name__}: {exc}"
+        unexpected = exc
+    finally:
+        stop_errors = safe_stop(arm, base)
+        sys.setswitchinterval(switch_interval)
+        timer.finish(state.t - t0)
+        result = _finish(
+            recorder, timer, work, out, kind, reason, cycles, state.t - t0, stop_errors, mode
+        )
+    if unexpected is not None:
+        raise unexpected
+    if kind == FAULT:
+        log.warning("control ended on an actuator fault: %s", reason)
+    return result
+
+
+def _targets(traj, t, pose, twist, mount: ArmMount, guidance: bool, compensate: bool):
+    """The target now: (pos, vel, acc) in the arm frame (m, m/s, m/s^2; vel relative to the
+    moving arm base when ``compensate``), and its position in the base frame and the world."""
+    sample = traj(t)
+    rz = _rz(float(pose[2]))
+    ob = mount._base_origin(pose)
+    if guidance:
+        target_b, vel_b, acc_b = sample.pos, sample.vel, sample.acc
+        target_w = ob + rz @ target_b
+    else:
+        target_w = sample.pos
+        target_b = rz.T @ (target_w - ob)
+        vel_b, acc_b = rz.T @ sample.vel, rz.T @ sample.acc
+        if compensate:  # minus the base's velocity at the target point (base frame)
+            w = float(twist[2])
+            vel_b = vel_b - np.array([twist[0] - w * target_b[1], twist[1] + w * target_b[0], 0.0])
+    if mount.identity_rotation:
+        pos = target_b - mount.position
+        vel, acc = vel_b, acc_b
+    else:
+        rmt = mount.rotation.T
+        pos = rmt @ (target_b - mount.position)
+        vel, acc = rmt @ vel_b, rmt @ acc_b
+    return pos, vel, acc, target_b, target_w, rz, ob
+
+
+class _Cycle:
+    """The work of one cycle after its state arrived: targets, command, checks, base twist,
+    one recorded sample; accumulates the tracking error |ee - target| (world, m)."""
+
+    def __init__(
+        self, law, wd, traj, t0, base, follower, mount, guidance, desired_b, recorder, compensate
+    ):
+        self.law, self.wd, self.traj, self.t0 = law, wd, traj, t0
+        self.base, self.follower, self.mount = base, follower, mount
+        self.guidance, self.desired_b = guidance, desired_b
+        self.recorder, self.compensate = recorder, compensate
+        self.zero = np.zeros(3)
+        self.sq_sum, self.max_err, self.last_err, self.samples = 0.0, 0.0, math.nan, 0
+        self.rot_b = None  # target orientation of the end effector in the base frame (guidance)
+        self.rot_w = None  # ... in the world (tracking)
+        self.target_w = self.zero  # the last target, world m
+
+    def hold_orientation(self, rot_a: np.ndarray, pose0: np.ndarray) -> None:
+        """Keep the end effector's orientation ``rot_a`` (arm frame, at the start) fixed in
+        the mode's frame (base frame in guidance, world in tracking)."""
+        rot_b = self.mount.rotation @ rot_a
+        if self.guidance:
+            self.rot_b = rot_b
+        else:
+            self.rot_w = _rz(float(pose0[2])) @ rot_b
+
+    def rot(self, rz: np.ndarray) -> np.ndarray | None:
+        """The target orientation in the arm frame now, for the base yaw rotation ``rz``
+        (None: no orientation task)."""
+        rm = self.mount.rotation
+        if self.rot_b is not None:
+            return rm.T @ self.rot_b
+        if self.rot_w is not None:
+            return rm.T @ (rz.T @ self.rot_w)
+        return None
+
+    def __call__(self, state: ArmState) -> np.ndarray:
+        mount = self.mount
+        if self.base is not None:
+            odom = self.base.odometry()
+            pose, twist = odom.pose, odom.twist
+            self.wd.check_odometry(pose, twist, state.t)
+        else:
+            pose = twist = self.zero
+        q = state.q
+        pos, vel, acc, target_b, target_w, rz, ob = _targets(
+            self.traj, state.t - self.t0, pose, twist, mount, self.guidance, self.compensate
+        )
+        rot = None if self.rot_b is None and self.rot_w is None else self.rot(rz)
+        cmd, ee_a = self.law.step(q, state.dq, pos, vel, acc, rot)
+        self.wd.check_command(cmd, state.t)
+        ee_b = mount.arm_to_base(ee_a)
+        if self.follower is not None:
+            p_d = target_b if self.guidance else self.desired_b
+            self.base.send_twist(self.follower.twist(ee_b, p_d, q))
+        self.target_w = target_w
+        self.recorder.add(state.t, q, state.dq, state.current, target_w, ob + rz @ ee_b, pose, cmd)
+        d = ee_b - target_b
+        e2 = float(d @ d)
+        self.sq_sum += e2
+        self.last_err = math.sqrt(e2)
+        if self.last_err > self.max_err:
+            self.max_err = self.last_err
+        self.samples += 1
+        return cmd
+
+
+def _finish(recorder, timer, work, out, kind, reason, cycles, duration, stop_errors, mode):
+    """Join the recording, write timing.json, fill the result; never raises."""
+    result = ControlResult(
+        kind=kind,
+        reason=reason,
+        cycles=cycles,
+        duration=max(float(duration), 0.0),
+        out_dir=out,
+        stop_errors=list(stop_errors),
+        trajectory=getattr(work.traj, "description", ""),
+        mode=mode.value,
+    )
+    if work.samples:
+        result.rms_error = math.sqrt(work.sq_sum / work.samples)
+        result.final_error, result.max_error = work.last_err, work.max_err
+    try:
+        result.recording = recorder.close()
+        result.recording_path = out / RECORDING
+    except Exception as exc:  # noqa: BLE001 - e.g. too few samples to make a recording
+        result.stop_errors.append(f"recording not joined: {exc}")
+        log.error("recording not joined: %s", exc)
+    try:
+        result.timing = timer.summary()
+        run_info: dict[str, Any] = {
+            "run": {
+                "mode": result.mode,
+                "trajectory": result.trajectory,
+                "kind": kind,
+                "reason": reason,
+                "cycles": cycles,
+                "duration_s": result.duration,
+                "rms_error_m": None if math.isnan(result.rms_error) else result.rms_error,
+                "max_error_m": None if math.isnan(result.max_error) else result.max_error,
+            }
+        }
+        result.timing_path = timer.dump(out / TIMING, run_info)
+    except Exception as exc:  # noqa: BLE001
+        result.stop_errors.append(f"timing.json not written: {exc}")
+    return result
+
+
+__all__ = [
+    "PERIOD",
+    "ArmMount",
+    "ControlResult",
+    "Mode",
+    "arm_model",
+    "arm_params",
+    "run_control",
+]

@@ -1,0 +1,110 @@
+"""The reference Cartesian velocity controller (non-compliant: the robot's default mode).
+
+At joint positions q (rad), for a target position x_d (m) and velocity xd_d (m/s) of a site in
+the arm's base frame:
+
+    v  = K_p clip(x_d - x) + xd_d,  its norm limited to max_speed
+    dq = dq_n + J^+ (v - J dq_n),  dq_n = k_n (q_pref - q),  J^+ = J^T (J J^T + lambda^2 I)^-1
+
+then scaled down uniformly (direction kept) until no joint exceeds its velocity limit. The
+result is a joint velocity command (rad/s) for the arm's VELOCITY mode.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcomp import dynamics
+from jaxcomp.control.gains import VelocityGains
+from jaxcomp.control.impedance import check_joint_vector, check_vector3, inverse3
+from jaxcomp.robot import Robot
+
+
+class VelocityDiagnostics(NamedTuple):
+    """Packed (..., 7): ee_pos (3) m | error (3) m (x_d - x, clipped) | scale (1)."""
+
+    data: jax.Array | np.ndarray
+
+    @property
+    def ee_pos(self):
+        """(3,) m, the site's position in the arm's base frame."""
+        return self.data[..., 0:3]
+
+    @property
+    def error(self):
+        """(3,) m, x_d - x after the norm clip."""
+        return self.data[..., 3:6]
+
+    @property
+    def scale(self):
+        """() factor (<= 1) the joint velocities were scaled by to respect their limits."""
+        return self.data[..., 6]
+
+
+def velocity_step_fn(robot: Robot, gains: VelocityGains, site: str = "end_effector"):
+    """The pure (unjitted) step function; see ``VelocityController.step``."""
+    tree, s = robot.tree, robot.site_index(site)
+    posture, k_n, _, limit = gains.joint_arrays(robot)
+    k_p, lam2 = np.asarray(gains.gain), gains.pinv_damping**2 * np.eye(3)
+    clip, max_speed = gains.error_clip, gains.max_speed
+
+    def step(q, target_pos, target_vel):
+        pos = dynamics.site_pose(tree, q, s)[0]
+        jac = dynamics.site_jacobian(tree, q, s)[:3]
+        err = target_pos - pos
+        err = err * (clip / jnp.maximum(jnp.linalg.norm(err), clip))
+        v = k_p * err + target_vel
+        v = v * (max_speed / jnp.maximum(jnp.linalg.norm(v), max_speed))
+        dq_null = k_n * (posture - q)
+        dq = dq_null + jac.T @ (inverse3(jac @ jac.T + lam2) @ (v - jac @ dq_null))
+        scale = 1.0 / jnp.maximum(jnp.max(jnp.abs(dq) / limit), 1.0)
+        return dq * scale, VelocityDiagnostics(jnp.concatenate([pos, err, scale[None]]))
+
+    return step
+
+
+class VelocityController:
+    """Reference Cartesian velocity controller (see module doc).
+
+    Attributes:
+        robot, gains, site, n.
+        step: jitted pure ``step(q, target_pos, target_vel) -> (dq (n,) rad/s,
+            VelocityDiagnostics)``; q rad (n,), target_pos m (3,), target_vel m/s (3,), arm
+            base frame; device arrays, no checks (``check_state`` makes checked ones).
+        step_fn: the same function unjitted.
+    """
+
+    def __init__(
+        self, robot: Robot, gains: VelocityGains | None = None, site: str = "end_effector"
+    ):
+        self.robot, self.site, self.n = robot, site, robot.nv
+        self.gains = VelocityGains() if gains is None else gains
+        self.step_fn = velocity_step_fn(robot, self.gains, site)
+        self.step = jax.jit(self.step_fn)
+
+    def check_state(self, q, target_pos, target_vel=None) -> tuple:
+        """Validated device arrays for ``step`` (target_vel None: zeros); InputError if bad."""
+        return (
+            jnp.asarray(check_joint_vector(q, self.n, "q (rad)", self.robot)),
+            jnp.asarray(check_vector3(target_pos, "target_pos", "m")),
+            jnp.asarray(
+                np.zeros(3)
+                if target_vel is None
+                else check_vector3(target_vel, "target_vel", "m/s")
+            ),
+        )
+
+    def checked_step(self, q, target_pos, target_vel=None):
+        """``step`` after ``check_state``."""
+        return self.step(*self.check_state(q, target_pos, target_vel))
+
+
+def make_velocity_controller(
+    robot: Robot, gains: VelocityGains | None = None, site: str = "end_effector"
+) -> VelocityController:
+    """A ``VelocityController`` for ``robot`` (the arm's own model, base frame)."""
+    return VelocityController(robot, gains, site)

@@ -1,0 +1,225 @@
+"""The control loop's watchdog: every state and every command is checked before it is used.
+
+A trip raises ``WatchdogTrip`` (a ``JaxcompError``) naming what went wrong; the loop then puts
+the arm in POSITION mode and stops the base before anything else (``safe_stop``). Checks:
+
+- state: time that does not advance or data identical to the previous cycle's (stale
+  feedback), NaN/inf in q, dq or current, an actuator fault reported in the state;
+- odometry: NaN/inf in the base pose or twist;
+- command: NaN/inf, a current beyond ``current_limit`` (A), a current held at the controller's
+  saturation for more than ``max_saturated_cycles`` consecutive cycles;
+- real time only: a gap of more than ``max_gap`` s between two cycles (the loop stalled).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from jaxcomp.errors import JaxcompError
+from jaxcomp.hardware.interface import Arm, ArmState, Base, ControlMode
+
+log = logging.getLogger(__name__)
+
+#: Trip kinds (``WatchdogTrip.kind``).
+STALE, NAN_STATE, FAULT, NAN_COMMAND, LIMIT, SATURATED, STALL, NAN_ODOMETRY = (
+    "stale_feedback",
+    "nan_state",
+    "actuator_fault",
+    "nan_command",
+    "current_limit",
+    "saturated",
+    "loop_stall",
+    "nan_odometry",
+)
+
+
+class WatchdogTrip(JaxcompError):
+    """A watchdog check failed. Attributes: kind (one of the module's trip kinds), t (s, the
+    state's time, or None), joints (names of the joints concerned)."""
+
+    def __init__(self, kind: str, message: str, t: float | None = None, joints=()):
+        super().__init__(message)
+        self.kind = kind
+        self.t = t
+        self.joints = tuple(joints)
+
+
+class Watchdog:
+    """State and command checks of one run (see module doc).
+
+    Args:
+        joint_names: the arm's joint names (messages).
+        current_limit: (n,) A, magnitude a command may not exceed.
+        saturation: (n,) A, the controller's own clip; a command at it (to 1e-9 A) for more
+            than ``max_saturated_cycles`` consecutive cycles trips. None: no saturation check.
+        max_saturated_cycles: cycles (1 ms each) a joint may stay saturated.
+        stale_cycles: consecutive stale states tolerated (0: the first one trips).
+        max_gap: s, the longest wall-clock gap between two cycles (real time only; None: off).
+        unit: of the commands (messages): "A" for currents, "rad/s" for velocities.
+    """
+
+    def __init__(
+        self,
+        joint_names,
+        current_limit,
+        saturation=None,
+        *,
+        max_saturated_cycles: int = 250,
+        stale_cycles: int = 0,
+        max_gap: float | None = None,
+        unit: str = "A",
+    ):
+        self.joint_names = tuple(joint_names)
+        self.n = len(self.joint_names)
+        self.current_limit = np.broadcast_to(np.asarray(current_limit, float), (self.n,)).copy()
+        self.saturation = (
+            None
+            if saturation is None
+            else np.broadcast_to(np.asarray(saturation, float), (self.n,)).copy()
+        )
+        self.max_saturated_cycles = int(max_saturated_cycles)
+        self.stale_cycles = int(stale_cycles)
+        self.max_gap_ns = None if max_gap is None else int(max_gap * 1e9)
+        self.unit = unit
+        self._last: ArmState | None = None
+        self._stale = 0
+        self._saturated = np.zeros(self.n, np.int64)
+        self._any_saturated = False
+        self._sat_at = None if self.saturation is None else self.saturation - 1e-9
+        self._last_ns: int | None = None
+
+    def _names(self, mask) -> list[str]:
+        return [self.joint_names[i] for i in np.flatnonzero(mask)]
+
+    def check_state(self, state: ArmState, now_ns: int | None = None) -> None:
+        """Check one measured state; raises ``WatchdogTrip``."""
+        t = state.t
+        if state.faults:
+            raise WatchdogTrip(FAULT, "actuator fault: " + "; ".join(state.faults), t)
+        q, dq, cur = state.q, state.dq, state.current
+        if not math.isfinite(float(q.sum()) + float(dq.sum()) + float(cur.sum()) + t):
+            bad = ~(np.isfinite(q) & np.isfinite(dq) & np.isfinite(cur))
+            raise WatchdogTrip(
+                NAN_STATE,
+                f"NaN/inf in the measured state at t = {t} s (joints "
+                f"{', '.join(self._names(bad)) or 'time'})",
+                t,
+                self._names(bad),
+            )
+        last = self._last
+        if last is not None:
+            if t <= last.t:
+                why = f"time did not advance (t = {t:.4f} s, previous {last.t:.4f} s)"
+            elif (
+                cur.tobytes() == last.current.tobytes()
+                and q.tobytes() == last.q.tobytes()
+                and dq.tobytes() == last.dq.tobytes()
+            ):
+                why = f"q, dq and current identical to the previous cycle's at t = {t:.4f} s"
+            else:
+                why = None
+            if why is not None:
+                self._stale += 1
+                if self._stale > self.stale_cycles:
+                    raise WatchdogTrip(STALE, f"stale feedback: {why}", t)
+            else:
+                self._stale = 0
+        self._last = state
+        if now_ns is not None and self.max_gap_ns is not None:
+            if self._last_ns is not None and now_ns - self._last_ns > self.max_gap_ns:
+                gap = (now_ns - self._last_ns) / 1e6
+                raise WatchdogTrip(
+                    STALL,
+                    f"loop stalled: {gap:.1f} ms between two cycles "
+                    f"(limit {self.max_gap_ns / 1e6:.1f} ms)",
+                    t,
+                )
+            self._last_ns = now_ns
+
+    def check_odometry(self, pose: np.ndarray, twist: np.ndarray, t: float | None = None) -> None:
+        """Check the base odometry (pose x, y, yaw; twist vx, vy, wz)."""
+        if not math.isfinite(float(pose.sum()) + float(twist.sum())):
+            raise WatchdogTrip(NAN_ODOMETRY, f"NaN/inf in the base odometry: {pose}, {twist}", t)
+
+    def check_command(self, current: np.ndarray, t: float | None = None) -> None:
+        """Check one current command (n,) A before it is sent; raises ``WatchdogTrip``."""
+        mag = np.abs(current)
+        if not (mag <= self.current_limit).all():  # NaN fails the comparison too
+            finite = np.isfinite(current)
+            if not finite.all():
+                names = self._names(~finite)
+                raise WatchdogTrip(NAN_COMMAND, f"NaN/inf command for {', '.join(names)}", t, names)
+            over = mag > self.current_limit
+            j = int(np.flatnonzero(over)[0])
+            raise WatchdogTrip(
+                LIMIT,
+                f"command {current[j]:.3f} {self.unit} for {self.joint_names[j]} beyond its "
+                f"limit {self.current_limit[j]:.3g} {self.unit}",
+                t,
+                self._names(over),
+            )
+        if self.saturation is not None:
+            sat = mag >= self._sat_at
+            if sat.any():
+                self._saturated = np.where(sat, self._saturated + 1, 0)
+                self._any_saturated = True
+                long = self._saturated > self.max_saturated_cycles
+                if long.any():
+                    j = int(np.flatnonzero(long)[0])
+                    raise WatchdogTrip(
+                        SATURATED,
+                        f"command of {self.joint_names[j]} saturated at "
+                        f"{self.saturation[j]:.3g} {self.unit} for {self._saturated[j]} "
+                        "consecutive cycles",
+                        t,
+                        self._names(long),
+                    )
+            elif self._any_saturated:
+                self._saturated[:] = 0
+                self._any_saturated = False
+
+
+def safe_stop(arm: Arm | None, base: Base | None) -> list[str]:
+    """Arm to POSITION mode (holding where it is) and base stopped, each tried even when the
+    other fails; returns the errors met (readable strings), never raises (except Ctrl-C
+    arriving here, after both were tried)."""
+    errors: list[str] = []
+    interrupt: BaseException | None = None
+    if arm is not None and not arm.closed:
+        try:
+            if any(m is not ControlMode.POSITION for m in arm.modes):
+                arm.set_modes(ControlMode.POSITION)
+        except KeyboardInterrupt as exc:  # finish the stop first
+            interrupt = exc
+        except Exception as exc:  # noqa: BLE001 - a stop must not stop halfway
+            errors.append(f"arm to position mode failed: {exc}")
+            log.error("arm to position mode failed: %r", exc)
+    if base is not None:
+        try:
+            base.stop()
+        except KeyboardInterrupt as exc:
+            interrupt = exc
+        except Exception as exc:  # noqa: BLE001
+            errors.append(f"base stop failed: {exc}")
+            log.error("base stop failed: %r", exc)
+    if interrupt is not None:
+        raise interrupt
+    return errors
+
+
+__all__ = [
+    "FAULT",
+    "LIMIT",
+    "NAN_COMMAND",
+    "NAN_ODOMETRY",
+    "NAN_STATE",
+    "SATURATED",
+    "STALE",
+    "STALL",
+    "Watchdog",
+    "WatchdogTrip",
+    "safe_stop",
+]

@@ -1,0 +1,196 @@
+"""Benchmark: one impedance-control step, jitted JAX against pinocchio + numpy, on one CPU core.
+
+Prints, side by side, the median and p99 latency (us) of one controller step of the Gen3 Lite
+(paper gains, paper-like identified params) over random states:
+
+- ``jax_step``: ``ImpedanceController.step`` with device-array inputs, the previous command
+  fed back as it is (how the 1 kHz loop calls it), waiting for both outputs;
+- ``jax_step_to_numpy``: the same plus copying the current command to numpy (to send it);
+- ``jax_site_dynamics``: g, site pose, Jacobian and M alone (the rigid-body share of the step);
+- ``jax_dispatch_floor``: a jitted function doing nothing with the same inputs and outputs;
+- ``pinocchio_numpy``: ``ImpedanceControllerPinocchio.step`` (numpy in, numpy out);
+
+the ratio JAX / pinocchio, and the compile time. Variants run in interleaved blocks (all see
+the same machine conditions); "best block" is the lowest median of one block of calls, the
+figure of the quietest moment on a machine other jobs share (the 1-min load average is
+printed). Targets for ``jax_step``: median <= 50 us, p99 <= 150 us.
+Run: python experiments/bench_control.py [--repeats N] [--block N] [--json FILE]
+"""
+
+import os
+
+os.environ.setdefault(
+    "XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+)
+if hasattr(os, "sched_setaffinity"):  # one core: the first, or $JAXCOMP_BENCH_CORE
+    _cores = sorted(os.sched_getaffinity(0))
+    os.sched_setaffinity(0, {int(os.environ.get("JAXCOMP_BENCH_CORE", _cores[0]))})
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import time  # noqa: E402
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import pinocchio as pin  # noqa: E402
+
+import jaxcomp  # noqa: E402
+from jaxcomp.control import (  # noqa: E402
+    ImpedanceControllerPinocchio,
+    ImpedanceGains,
+    make_impedance_controller,
+)
+from jaxcomp.control.impedance import site_dynamics  # noqa: E402
+from jaxcomp.robot_params import RobotParams  # noqa: E402
+
+PAPER_RATIO = [1.0282, 0.3074, 1.0282, 1.9074, 2.0373, 1.9724]  # A/(N m)
+PAPER_FRICTION = [0.5318, 1.4776, 0.6695, 0.3013, 0.3732, 0.5923]  # A
+
+
+def cpu_name() -> str:
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def latency(variants: dict, repeats: int, block: int) -> dict:
+    """Per-call wall time (us) of each variant ``(fn, args_list)``: ``repeats`` calls each,
+    cycling through args_list, run in interleaved blocks of ``block`` calls so that every
+    variant sees the same machine conditions. Returns {name: (times, block medians)}."""
+    out = {k: [] for k in variants}
+    clock = time.perf_counter_ns
+    for start in range(0, repeats, block):
+        for name, (fn, args_list) in variants.items():
+            n = len(args_list)
+            times = np.empty(min(block, repeats - start))
+            for k in range(times.size):
+                args = args_list[(start + k) % n]
+                t0 = clock()
+                fn(*args)
+                times[k] = clock() - t0
+            out[name].append(times * 1e-3)
+    return {k: (np.concatenate(v), np.array([np.median(b) for b in v])) for k, v in out.items()}
+
+
+def main() -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=20000, help="calls timed per variant")
+    parser.add_argument("--block", type=int, default=1000, help="calls per interleaved block")
+    parser.add_argument("--json", help="also write the figures to this JSON file")
+    args = parser.parse_args()
+
+    robot = jaxcomp.load_robot("gen3_lite")
+    params = RobotParams(
+        model=robot.name,
+        ratio=PAPER_RATIO,
+        friction=PAPER_FRICTION,
+        com_offset={"ARM": [0.002, -0.001, 0.003], "FOREARM": [-0.003, 0.002, 0.001]},
+        method="bench",
+    )
+    gains = ImpedanceGains()
+    ctrl = make_impedance_controller(robot, params, gains)
+    compile_s = ctrl.compile()
+    ref = ImpedanceControllerPinocchio(robot, params, gains)
+
+    rng = np.random.default_rng(0)
+    lo, hi = robot.joint_limits.T
+    states_np = []
+    for _ in range(256):
+        q = rng.uniform(lo, hi)
+        x = np.asarray(robot.site_position(q, "end_effector")) + rng.normal(0, 0.05, 3)
+        states_np.append(
+            (q, rng.normal(0, 0.5, 6), x, rng.normal(0, 0.1, 3), np.zeros(3), np.zeros(6))
+        )
+    states_dev = [ctrl.check_state(*s) for s in states_np]
+
+    last = {"current": states_dev[0][5]}
+
+    def jax_step(q, dq, xd, vd, ad, _prev):
+        cur, diag = ctrl.step(q, dq, xd, vd, ad, last["current"])
+        jax.block_until_ready((cur, diag))
+        last["current"] = cur
+
+    def jax_step_to_numpy(q, dq, xd, vd, ad, _prev):
+        cur, diag = ctrl.step(q, dq, xd, vd, ad, last["current"])
+        np.asarray(cur)
+        jax.block_until_ready(diag)
+        last["current"] = cur
+
+    inertial = jax.tree.map(np.asarray, params.inertial_params(robot))
+    tree, site, grav = robot.tree, robot.site_index("end_effector"), robot.default_gravity
+
+    @jax.jit
+    def dyn(q):
+        return site_dynamics(tree, q, site, inertial, grav)
+
+    @jax.jit
+    def floor(q, dq, xd, vd, ad, prev):
+        return q + prev, jnp.concatenate([xd, vd, ad, dq, q, q, q, q, jnp.ones(1)])
+
+    def dyn_call(q, *_):
+        jax.block_until_ready(dyn(q))
+
+    def floor_call(*a):
+        jax.block_until_ready(floor(*a))
+
+    def pin_step(*a):
+        ref.step(*a)
+
+    for fn, states in [(jax_step, states_dev), (dyn_call, states_dev), (floor_call, states_dev)]:
+        for s in states[:50]:
+            fn(*s)
+    rows = latency(
+        {
+            "jax_step": (jax_step, states_dev),
+            "jax_step_to_numpy": (jax_step_to_numpy, states_dev),
+            "jax_site_dynamics": (dyn_call, states_dev),
+            "jax_dispatch_floor": (floor_call, states_dev),
+            "pinocchio_numpy": (pin_step, states_np),
+        },
+        args.repeats,
+        args.block,
+    )
+    stats = {
+        k: {
+            "median": float(np.median(t)),
+            "p99": float(np.percentile(t, 99)),
+            "best_block_median": float(blocks.min()),
+        }
+        for k, (t, blocks) in rows.items()
+    }
+    ratio = {k: stats["jax_step"][k] / stats["pinocchio_numpy"][k] for k in ("median", "p99")}
+    result = {
+        "cpu": cpu_name(),
+        "jax": jax.__version__,
+        "pinocchio": pin.__version__,
+        "compile_s": compile_s,
+        "latency_us": stats,
+        "ratio_jax_over_pinocchio": ratio,
+        "targets_us": {"median": 50.0, "p99": 150.0},
+    }
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    result["load_average_1min"] = load
+    print(f"Gen3 Lite impedance-control step, one core of {result['cpu']} (load {load:.2f})")
+    print(f"{'variant':<22}{'median us':>12}{'p99 us':>12}{'best block us':>15}")
+    for k, v in stats.items():
+        print(f"{k:<22}{v['median']:>12.1f}{v['p99']:>12.1f}{v['best_block_median']:>15.1f}")
+    print(f"jax_step / pinocchio: median x{ratio['median']:.2f}, p99 x{ratio['p99']:.2f}")
+    met = stats["jax_step"]["median"] <= 50.0 and stats["jax_step"]["p99"] <= 150.0
+    print(
+        f"(compile {compile_s:.2f} s; targets for jax_step: median <= 50 us, p99 <= 150 us: "
+        f"{'met' if met else 'NOT met'})"
+    )
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(result, fh, indent=2)
+    return result
+
+
+if __name__ == "__main__":
+    main()

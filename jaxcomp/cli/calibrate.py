@@ -1,0 +1,227 @@
+"""`jaxcomp calibrate` and `jaxcomp fit`: record calibration sweeps, fit params files."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import click
+import numpy as np
+
+from jaxcomp.cli.group import cli
+from jaxcomp.errors import InputError
+
+_METHODS = ("jax", "scipy")
+
+
+def _fit(recordings, method: str):
+    if method == "jax":
+        from jaxcomp.identify.jax_fit import fit
+
+        return fit(recordings)
+    from jaxcomp.identify.baseline import fit_baseline
+
+    if len(recordings) > 1:
+        raise InputError(
+            "--method scipy fits one recording (the paper's per-joint fit); use --method jax "
+            "to fit several recordings jointly, or --each"
+        )
+    return fit_baseline(recordings[0])
+
+
+def _table(columns: dict, links: list[str]) -> str:
+    """Parameters side by side: one column per params set."""
+    names = list(columns)
+    n = len(next(iter(columns.values())).ratio)
+    head = f"{'':<26}" + "".join(f"{k:>12}" for k in names)
+    rows = [head, "-" * len(head)]
+
+    def row(label, values):
+        rows.append(f"{label:<26}" + "".join(f"{v:>12.4f}" for v in values))
+
+    for j in range(n):
+        row(f"ratio[{j}] A/(N m)", [p.ratio[j] for p in columns.values()])
+    for j in range(n):
+        row(f"friction[{j}] A", [p.friction[j] for p in columns.values()])
+    for j in range(n):
+        row(
+            f"phase_shift[{j}] deg",
+            [
+                np.rad2deg(p.phase_shift[j]) if p.phase_shift is not None else np.nan
+                for p in columns.values()
+            ],
+        )
+    for link in links:
+        for k, ax in enumerate("xyz"):
+            row(
+                f"com {link}.{ax} mm",
+                [1e3 * p.com_offset.get(link, np.zeros(3))[k] for p in columns.values()],
+            )
+    return "\n".join(rows)
+
+
+@cli.command()
+@click.option(
+    "--robot",
+    "backend",
+    type=click.Choice(["sim", "kortex"]),
+    default="sim",
+    show_default=True,
+    help="sim: the simulated Gen3 Lite with a hidden true robot (written to DIR/truth.json); "
+    "kortex: the real arm through kortex_api.",
+)
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False),
+    default="calibration",
+    show_default=True,
+    help="Output folder: recording.npz, params.json (joint JAX fit), params_scipy.json (the "
+    "paper's per-joint fit), sweeps.png, truth.json (sim).",
+)
+@click.option(
+    "--plan",
+    "plan_file",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Calibration plan JSON (default: the paper's sweeps, -100..100 deg at "
+    "40 deg/s, several held poses per joint).",
+)
+@click.option(
+    "--seed",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Seed of the simulator's true robot and noise (sim only).",
+)
+@click.option(
+    "--truth",
+    "truth_file",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="True robot for the simulator, a params JSON (sim only; default: drawn "
+    "from --seed: the paper's ratios and frictions, COM offsets of a few mm).",
+)
+@click.option("--ip", default="192.168.1.10", show_default=True, help="Arm address (kortex).")
+@click.option(
+    "--resume",
+    is_flag=True,
+    help="Continue an interrupted calibration into the same DIR (keeps its sweeps).",
+)
+@click.option("--viewer", is_flag=True, help="Show the MuJoCo viewer (sim, needs a display).")
+def calibrate(backend, out_dir, plan_file, seed, truth_file, ip, resume, viewer) -> None:
+    """Run the calibration sweeps, record them at 1 kHz, and fit with both methods.
+
+    Each joint is swept from -100 to +100 deg and back at constant speed with the robot's own
+    position servo while the others are held, as in the paper (Section IV-A). The recording
+    is written incrementally (an interrupted run keeps its finished sweeps; --resume goes on).
+    Then the joint JAX fit and the paper's scipy fit run on it and their parameters are
+    printed side by side (with the truth, on the simulator).
+    """
+    from jaxcomp.identify.plan import default_plan, load_plan
+    from jaxcomp.identify.plots import plot_sweeps
+    from jaxcomp.identify.recorder import record
+    from jaxcomp.robot import load_robot
+
+    out = Path(out_dir)
+    robot = load_robot("gen3_lite")
+    plan = load_plan(plan_file, robot) if plan_file else default_plan(robot)
+    click.echo(f"plan: {len(plan.sweeps)} sweeps, about {plan.duration():.0f} s of motion")
+    truth = None
+    if backend == "sim":
+        from jaxcomp.hardware import Simulator, TrueRobot
+
+        truth = TrueRobot.load(truth_file, robot) if truth_file else TrueRobot.draw(robot, seed)
+        sim = Simulator(robot, truth, seed=seed, viewer=viewer)
+        arm = sim.arm
+        out.mkdir(parents=True, exist_ok=True)
+        truth.save(out / "truth.json")
+    else:
+        from jaxcomp.hardware import KortexArm
+
+        arm = KortexArm(ip, robot=robot)
+    with arm:
+        rec = record(arm, plan, out / "recording.npz", model="gen3_lite", resume=resume)
+    click.echo(f"recorded {rec.n_samples} samples -> {out / 'recording.npz'}")
+    fits = {}
+    for method in _METHODS:
+        fits[method] = _fit([rec], method)
+        click.echo(f"{method} fit: {fits[method].fit_seconds:.3f} s")
+    fits["jax"].save(out / "params.json")
+    fits["scipy"].save(out / "params_scipy.json")
+    columns = dict(fits)
+    if truth is not None:
+        columns["truth"] = truth.params
+    links = sorted({k for p in columns.values() for k in p.com_offset}, key=robot.link_index)
+    click.echo(_table(columns, links))
+    plot_sweeps(rec, columns, out / "sweeps.png")
+    click.echo(f"wrote {out / 'params.json'}, {out / 'params_scipy.json'}, {out / 'sweeps.png'}")
+
+
+@cli.command()
+@click.argument("recordings", nargs=-1, required=True, type=click.Path(dir_okay=False))
+@click.option(
+    "--method",
+    type=click.Choice(_METHODS),
+    default="jax",
+    show_default=True,
+    help="jax: all joints and recordings jointly (gradient-based, with standard "
+    "errors); scipy: the paper's per-joint fit (one recording).",
+)
+@click.option(
+    "--each",
+    is_flag=True,
+    help="Fit every recording on its own (vmapped batch); writes a JSON list.",
+)
+@click.option(
+    "--out",
+    "out_file",
+    type=click.Path(dir_okay=False),
+    required=True,
+    help="Params JSON to write (a list with --each).",
+)
+@click.option(
+    "--plot",
+    "plot_file",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="PNG: sweeps and model (one fit) or boxplots normalized by the median (--each).",
+)
+def fit(recordings, method, each, out_file, plot_file) -> None:
+    """Fit ratio, friction and COM offsets to calibration recordings (.npz).
+
+    Several recordings of one robot are fitted jointly into one params set (e.g. two mountings
+    with different gravity, or with and without a known payload), unless --each is given.
+    Nothing is written when a recording is invalid or a fit does not converge.
+    """
+    from jaxcomp.recording import load_recording
+    from jaxcomp.robot_params import write_json_atomic
+
+    recs = [load_recording(p) for p in recordings]
+    start = time.perf_counter()
+    if each:
+        if method == "jax":
+            from jaxcomp.identify.jax_fit import fit_each
+
+            results = fit_each(recs, progress=True)
+        else:
+            results = [_fit([r], "scipy") for r in recs]
+        write_json_atomic(out_file, [p.to_dict() for p in results])
+        click.echo(
+            f"{len(results)} fits ({method}) in {time.perf_counter() - start:.2f} s -> {out_file}"
+        )
+        if plot_file:
+            from jaxcomp.identify.plots import plot_batch
+
+            plot_batch(results, plot_file)
+        return
+    params = _fit(recs, method)
+    params.save(out_file)
+    robot = recs[0].robot()
+    links = sorted(params.com_offset, key=robot.link_index)
+    click.echo(_table({method: params}, links))
+    click.echo(f"fit in {params.fit_seconds:.3f} s -> {out_file}")
+    if plot_file:
+        from jaxcomp.identify.plots import plot_sweeps
+
+        plot_sweeps(recs[0], {method: params}, plot_file)

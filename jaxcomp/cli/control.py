@@ -1,0 +1,284 @@
+"""`jaxcomp control`: guidance or tracking mode on the simulator or the real robot."""
+
+from __future__ import annotations
+
+import math
+
+import click
+
+from jaxcomp.cli.group import cli
+from jaxcomp.errors import InputError, JaxcompError
+
+_TRAJ_HELP = (
+    "Target path KIND[:key=value,...]; positions m, speeds m/s, accelerations m/s^2. "
+    "'static' (x,y,z absolute or dx,dy,dz from the start; default: the start position), "
+    "'line:dx=,dy=,dz=,v=,passes=', 'circle:r=0.1,v=0.05[,turns=,dir=,cx=,cy=,cz=]' "
+    "(horizontal, starting at the end effector), 'half-circle' (the paper's Exp. 2: r=0.315, "
+    "v=0.101, passes=4, centred on the arm's vertical axis at the start height). Tracking "
+    "mode: world frame; guidance mode: the base's frame. Default: static."
+)
+
+
+def parse_push(text: str) -> tuple[float, float, tuple[float, float, float]]:
+    """'START,DURATION,FX,FY,FZ' (s, s, N world) -> (start, duration, force)."""
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != 5 or not all(math.isfinite(v) for v in values):
+        raise InputError(
+            f"--push {text!r}: expected START,DURATION,FX,FY,FZ (s, s, N, N, N), five numbers"
+        )
+    start, duration, fx, fy, fz = values
+    if start < 0 or duration <= 0:
+        raise InputError(f"--push {text!r}: START must be >= 0 s and DURATION > 0 s")
+    return start, duration, (fx, fy, fz)
+
+
+def _model_name(robot) -> str:
+    """The recording's ``model`` field: the built-in name, else the model file's path."""
+    from jaxcomp.robot import builtin_models
+
+    return robot.name if robot.name in builtin_models() else str(robot.source)
+
+
+def _target_marker(sim):
+    """An ``on_cycle`` hook drawing the target as a red sphere in the simulator's viewer
+    (about 50 Hz), or None without a viewer. Drawing problems never stop the loop."""
+    viewer = sim.viewer
+    if viewer is None:
+        return None
+    import mujoco
+    import numpy as np
+
+    size, rgba, eye = np.array([0.015, 0.0, 0.0]), np.array([0.9, 0.1, 0.1, 0.8]), np.eye(3)
+
+    def on_cycle(k, state, command, target) -> None:
+        if k % 20:
+            return
+        try:
+            with viewer.lock():
+                scn = viewer.user_scn
+                mujoco.mjv_initGeom(
+                    scn.geoms[0], mujoco.mjtGeom.mjGEOM_SPHERE, size, target, eye.ravel(), rgba
+                )
+                scn.ngeom = 1
+        except Exception:  # noqa: BLE001, S110 - a marker must never end a run
+            pass
+
+    return on_cycle
+
+
+@cli.command()
+@click.option(
+    "--mode",
+    type=click.Choice(["guidance", "tracking"]),
+    default="guidance",
+    show_default=True,
+    help="guidance: target fixed to the base (push the arm, the base follows); tracking: the "
+    "target follows --trajectory in the world, compliant to pushes.",
+)
+@click.option(
+    "--robot",
+    "backend",
+    type=click.Choice(["sim", "kortex"]),
+    default="sim",
+    show_default=True,
+    help="sim: the MuJoCo simulator; kortex: the real Gen3 Lite (kortex_api) and, when ROS 2 "
+    "is available, the Dingo-O.",
+)
+@click.option(
+    "--model",
+    default="mobile_gen3_lite",
+    show_default=True,
+    help="Simulated robot (sim only): mobile_gen3_lite (arm on the Dingo-O) or gen3_lite (the "
+    "arm alone, no base), or a model path.",
+)
+@click.option(
+    "--params",
+    "params_file",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Identified params JSON (ratios A/(N m), friction A, COM offsets m); default: the "
+    "model's nominal figures.",
+)
+@click.option("--trajectory", default="static", show_default=True, help=_TRAJ_HELP)
+@click.option(
+    "--duration",
+    type=float,
+    default=None,
+    help="Seconds of control; default: the trajectory's own length, or 10 s (static, endless).",
+)
+@click.option(
+    "--push",
+    "pushes",
+    multiple=True,
+    metavar="START,DURATION,FX,FY,FZ",
+    help="Simulated push on the end effector: from START s after the start for DURATION s, "
+    "force (FX, FY, FZ) N in the world frame. Repeatable. Simulator only.",
+)
+@click.option(
+    "--controller",
+    "law",
+    type=click.Choice(["impedance", "velocity"]),
+    default="impedance",
+    show_default=True,
+    help="impedance: the compliant current-based controller (CURRENT mode); velocity: the "
+    "robot's stiff Cartesian velocity controller (VELOCITY mode, not compliant; the paper's "
+    "reference in Exp. 2).",
+)
+@click.option(
+    "--stiffness",
+    type=float,
+    default=None,
+    help="Cartesian stiffness K_d, N/m, every axis (default the paper's 40).",
+)
+@click.option(
+    "--damping",
+    type=float,
+    default=None,
+    help="Cartesian damping D_d, N s/m, every axis (default the paper's 3).",
+)
+@click.option("--viewer", is_flag=True, help="Show the MuJoCo viewer (sim, needs a display).")
+@click.option(
+    "--realtime/--lockstep",
+    default=None,
+    help="Pace the loop on the wall clock at 1 kHz, or run lock step with the simulator as "
+    "fast as the CPU allows. Default: lock step, real time with --viewer; kortex is always "
+    "real time.",
+)
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False),
+    default="control_run",
+    show_default=True,
+    help="Directory for recording.npz (1 kHz, plus target/ee/base/command) and timing.json.",
+)
+@click.option("--seed", type=int, default=0, show_default=True, help="Simulator truth and noise.")
+@click.option("--ip", default="192.168.1.10", show_default=True, help="Arm address (kortex).")
+def control(
+    mode: str,
+    backend: str,
+    model: str,
+    params_file: str | None,
+    trajectory: str,
+    duration: float | None,
+    pushes: tuple[str, ...],
+    law: str,
+    stiffness: float | None,
+    damping: float | None,
+    viewer: bool,
+    realtime: bool | None,
+    out_dir: str,
+    seed: int,
+    ip: str,
+) -> None:
+    """Run the compliant arm (current-based impedance control) with the base follower.
+
+    The controller works at 1 kHz in the arm's base frame; the base (when there is one)
+    follows the end effector (paper Eq. 20). Any fault, stale or NaN feedback, out-of-range
+    command or Ctrl-C ends the run with the arm in position mode and the base stopped. Prints
+    how the run ended, the RMS tracking error (m) and the loop timing.
+    """
+    import jax
+
+    # run each controller step on the calling thread: no thread hand-off per 1 kHz cycle
+    jax.config.update("jax_cpu_enable_async_dispatch", False)
+
+    from jaxcomp.control.gains import ImpedanceGains
+    from jaxcomp.control.impedance import make_impedance_controller
+    from jaxcomp.control.loop import ArmMount, arm_model, arm_params, run_control
+    from jaxcomp.control.trajectory import parse_trajectory
+    from jaxcomp.control.velocity import make_velocity_controller
+    from jaxcomp.robot import load_robot
+    from jaxcomp.robot_params import RobotParams
+
+    spec = parse_trajectory(trajectory)
+    push_list = [parse_push(p) for p in pushes]
+    if duration is not None and not (math.isfinite(duration) and duration > 0):
+        raise InputError(f"--duration must be a positive number of s, got {duration}")
+    gains = ImpedanceGains()
+    changes = {}
+    if stiffness is not None:
+        changes["stiffness"] = stiffness
+    if damping is not None:
+        changes["damping"] = damping
+    if changes:
+        gains = gains.replace(**changes)
+
+    if backend == "kortex":
+        if push_list:
+            raise InputError("--push acts on the simulator only")
+        if realtime is False:
+            raise InputError("the real robot runs in real time only (drop --lockstep)")
+        realtime = True
+    elif realtime is None:
+        realtime = viewer
+
+    arm = base = sim = None
+    try:
+        if backend == "sim":
+            from jaxcomp.hardware import Simulator
+
+            sim = Simulator(model, seed=seed, viewer=viewer)
+            arm = sim.arm
+            base = sim.base if sim.has_base else None
+            robot = sim.robot
+        else:
+            from jaxcomp.hardware import DingoBase, KortexArm
+
+            try:  # the loop paces the cycles itself (absolute 1 kHz deadlines)
+                arm = KortexArm(ip, robot="gen3_lite", pace=False)
+            except JaxcompError:
+                raise
+            except ImportError as exc:
+                raise JaxcompError(str(exc)) from None
+            except Exception as exc:  # noqa: BLE001 - transport errors of kortex_api
+                raise JaxcompError(f"cannot open the arm at {ip}: {exc}") from None
+            try:
+                base = DingoBase()
+            except ImportError as exc:
+                click.echo(f"no base: {exc}", err=True)
+                base = None
+            robot = load_robot("mobile_gen3_lite" if base is not None else "gen3_lite")
+        arm_robot = arm_model(robot)
+        params = None
+        if params_file is not None:
+            params = arm_params(RobotParams.load(params_file), arm_robot)
+        if law == "velocity":
+            controller = make_velocity_controller(arm_robot)
+        else:
+            controller = make_impedance_controller(arm_robot, params, gains)
+        click.echo(f"compiling the controller for {arm_robot.name} ...", err=True)
+        if hasattr(controller, "compile"):
+            controller.compile()
+        if sim is not None:
+            for start, length, force in push_list:
+                sim.push(sim.t + start, length, force)
+        mount = ArmMount.from_model(robot) if base is not None else ArmMount()
+        marker = _target_marker(sim) if sim is not None else None
+        result = run_control(
+            arm,
+            base,
+            controller,
+            mode,
+            spec,
+            duration,
+            out_dir,
+            realtime,
+            mount=mount,
+            model=_model_name(robot),
+            on_cycle=marker,
+        )
+    finally:
+        if sim is not None:
+            sim.close()
+        else:
+            for part in (arm, base):
+                if part is not None:
+                    part.close()
+    click.echo(result.summary())
+    if not result.ok:
+        raise SystemExit(1)

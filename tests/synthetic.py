@@ -1,0 +1,93 @@
+"""Calibration recordings computed straight from the model (no simulator): exact truth, fast.
+
+current = r * g_true(q) + l * d + b * v + noise for the swept joint (g_true: the nominal model
+with the truth's COM offsets and an optional payload), sampled at 1 kHz along each sweep of a
+plan at constant speed (no ramps).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcomp import dynamics
+from jaxcomp.recording import Recording, validate
+from jaxcomp.robot_params import RobotParams
+
+
+def sweep(joint: int, hold, lower: float, upper: float, speed: float, dt: float = 1e-3):
+    """q (2m, n), dq, direction of one sweep lower -> upper -> lower at ``speed`` rad/s."""
+    m = int(round((upper - lower) / speed / dt))
+    up = lower + speed * dt * np.arange(m)
+    q = np.tile(np.asarray(hold, float), (2 * m, 1))
+    q[:m, joint] = up
+    q[m:, joint] = up[::-1] + speed * dt
+    dq = np.zeros_like(q)
+    dq[:m, joint], dq[m:, joint] = speed, -speed
+    return q, dq, np.r_[np.ones(m), -np.ones(m)].astype(int)
+
+
+def recording(
+    robot,
+    truth: RobotParams,
+    sweeps,
+    noise: float = 0.05,
+    seed: int = 0,
+    gravity=(0.0, 0.0, -9.81),
+    payload_mass: float = 0.0,
+    payload_com=(0.0, 0.0, 0.0),
+    viscous=None,
+) -> Recording:
+    """A recording of ``sweeps`` [(joint, hold, lower, upper, speed)] for ``truth``."""
+    parts = [sweep(*s) for s in sweeps]
+    q = np.concatenate([p[0] for p in parts])
+    dq = np.concatenate([p[1] for p in parts])
+    d = np.concatenate([p[2] for p in parts])
+    joint = np.concatenate([np.full(len(p[2]), s[0]) for s, p in zip(sweeps, parts, strict=True)])
+    params = truth.inertial_params(robot)
+    if payload_mass > 0:
+        params = robot.with_payload(params, payload_mass, payload_com)
+    g = jax.jit(jax.vmap(lambda x: dynamics.gravity(robot.tree, x, params, jnp.asarray(gravity))))
+    current = truth.ratio * np.asarray(g(q))
+    rows = np.arange(len(d))
+    current[rows, joint] += truth.friction[joint] * d
+    if viscous is not None:
+        current += truth.ratio * np.asarray(viscous) * dq
+    current += noise * np.random.default_rng(seed).standard_normal(current.shape)
+    return validate(
+        dict(
+            t=np.arange(len(d)) * 1e-3,
+            q=q,
+            dq=dq,
+            current=current,
+            joint=joint,
+            direction=d,
+            model=robot.name,
+            gravity=np.asarray(gravity, float),
+            payload_mass=payload_mass,
+            payload_com=np.asarray(payload_com, float),
+        )
+    )
+
+
+def plan_sweeps(plan, speed_scale=None):
+    """[(joint, hold, lower, upper, speed)] of a ``CalibrationPlan``."""
+    out = []
+    for k, s in enumerate(plan.sweeps):
+        scale = 1.0 if speed_scale is None else speed_scale(k, s)
+        out.append((s.joint, s.hold, s.lower, s.upper, s.speed * scale))
+    return out
+
+
+def relative_gravity_error(robot, truth: RobotParams, fitted: RobotParams, poses) -> np.ndarray:
+    """Per joint: RMS over ``poses`` of the predicted gravity current (ratio x g(q)) error,
+    relative to the RMS true gravity current."""
+    g = jax.jit(jax.vmap(lambda x, p: dynamics.gravity(robot.tree, x, p), in_axes=(0, None)))
+    true = np.asarray(g(poses, truth.inertial_params(robot))) * truth.ratio
+    fit = np.asarray(g(poses, fitted.inertial_params(robot))) * fitted.ratio
+    return np.sqrt(((fit - true) ** 2).mean(0)) / np.sqrt((true**2).mean(0))
+
+
+def random_poses(robot, count: int, seed: int = 0) -> np.ndarray:
+    """Poses drawn uniformly within the joint limits, rad."""
+    lo, hi = robot.joint_limits.T
+    return np.random.default_rng(seed).uniform(lo, hi, (count, len(lo)))
