@@ -546,7 +546,7 @@ _stats_each = jax.jit(jax.vmap(_sweep_stats.__wrapped__, in_axes=(None, 0)), sta
 
 
 def fit_each(
-    recordings: Iterable[Recording], batch: int = 32, progress: bool = False
+    recordings: Iterable[Recording], batch: int = 16, progress: bool = False
 ) -> list[RobotParams]:
     """Fit every recording on its own, ``batch`` at a time in one vmapped computation.
 

@@ -10,6 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcomp import dynamics
+from jaxcomp.identify.evaluate import gravity_current_error as relative_gravity_error  # noqa: F401
+from jaxcomp.identify.evaluate import random_poses  # noqa: F401
 from jaxcomp.recording import Recording, validate
 from jaxcomp.robot_params import RobotParams
 
@@ -76,18 +78,3 @@ def plan_sweeps(plan, speed_scale=None):
         scale = 1.0 if speed_scale is None else speed_scale(k, s)
         out.append((s.joint, s.hold, s.lower, s.upper, s.speed * scale))
     return out
-
-
-def relative_gravity_error(robot, truth: RobotParams, fitted: RobotParams, poses) -> np.ndarray:
-    """Per joint: RMS over ``poses`` of the predicted gravity current (ratio x g(q)) error,
-    relative to the RMS true gravity current."""
-    g = jax.jit(jax.vmap(lambda x, p: dynamics.gravity(robot.tree, x, p), in_axes=(0, None)))
-    true = np.asarray(g(poses, truth.inertial_params(robot))) * truth.ratio
-    fit = np.asarray(g(poses, fitted.inertial_params(robot))) * fitted.ratio
-    return np.sqrt(((fit - true) ** 2).mean(0)) / np.sqrt((true**2).mean(0))
-
-
-def random_poses(robot, count: int, seed: int = 0) -> np.ndarray:
-    """Poses drawn uniformly within the joint limits, rad."""
-    lo, hi = robot.joint_limits.T
-    return np.random.default_rng(seed).uniform(lo, hi, (count, len(lo)))
