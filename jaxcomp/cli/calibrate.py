@@ -147,6 +147,7 @@ def calibrate(backend, out_dir, plan_file, seed, truth_file, ip, resume, viewer)
     for method in _METHODS:
         fits[method] = _fit([rec], method)
         click.echo(f"{method} fit: {fits[method].fit_seconds:.3f} s")
+    click.echo("(the first JAX fit on a machine includes its XLA compilation; it is cached)")
     fits["jax"].save(out / "params.json")
     fits["scipy"].save(out / "params_scipy.json")
     columns = dict(fits)
