@@ -1,0 +1,302 @@
+"""The MJX simulator: plans, batched truths, and agreement with the CPU Simulator.
+
+MJX compiles slowly on a 2-core CPU (~25-40 s for the chunk function): one module-scoped run of
+4 worlds (settle 500 steps + a 350-step plan) serves every unmarked MJX test.
+"""
+
+import dataclasses
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxcomp import dynamics
+from jaxcomp.errors import InputError
+from jaxcomp.hardware import DT, ArmCommand, Simulator, TrueRobot
+from jaxcomp.hardware.mjx_sim import (
+    AGREEMENT,
+    BatchTruth,
+    MjxSimulator,
+    Move,
+    reference_trajectory,
+    servo_gains,
+    true_inertial_params,
+)
+from jaxcomp.robot_params import RobotParams
+
+ROOT = Path(__file__).resolve().parents[1]
+STEP = np.deg2rad([6.0, 6.0, 5.0, 4.0, -5.0, 6.0])  # rad, the plan's move (joint 1 saturates)
+TILT = 9.81 * np.array([-np.sin(0.35), 0.0, -np.cos(0.35)])  # m/s^2, a base tilted 20 deg
+
+
+def _cpu_truth(noise: float = 0.0) -> TrueRobot:
+    sim = Simulator("gen3_lite", seed=3)
+    return dataclasses.replace(sim.truth, current_noise=noise)
+
+
+def _plan(start):
+    """Move every joint (up to 6 deg at 0.6 rad/s), then hold 75 ms: 350 steps."""
+    return [Move(start + STEP, 0.6), Move(None, 0.6, settle=0.075)]
+
+
+# ----------------------------------------------------------------------------- no MJX
+def test_reference_trajectory_is_what_move_to_sends():
+    sim = Simulator("gen3_lite", seed=1)
+    arm = sim.arm
+    sent = []
+    exchange = arm._exchange
+
+    def spy(modes, position, velocity, current):
+        sent.append(position.copy())
+        return exchange(modes, position, velocity, current)
+
+    arm._exchange = spy
+    start = arm.read().q.copy()
+    a = np.deg2rad([10.0, 30.0, 80.0, 20.0, 50.0, -30.0])
+    b = np.deg2rad([0.0, 20.0, 90.0, 0.0, 60.0, 0.0])
+    moves = [Move(a, 0.7), Move(None, 0.3, settle=0.013), Move(b, 0.2, accel=1.0, settle=0.01)]
+    moves.append((a, 0.35))  # plain tuples work too
+    arm.move_to(a, 0.7)
+    arm.move_to(sent[-1].copy(), 0.3, settle=0.013)  # Move(None): stay at the target
+    arm.move_to(b, 0.2, accel=1.0, settle=0.01)
+    arm.move_to(a, 0.35)
+    q_ref = reference_trajectory(moves, start, limits=arm.limits.position, max_speed=1.0)
+    np.testing.assert_array_equal(q_ref, np.array(sent))  # bit for bit
+
+
+def test_reference_trajectory_refuses_bad_moves():
+    start = np.zeros(6)
+    assert reference_trajectory([], start).shape == (0, 6)
+    with pytest.raises(InputError, match="speed"):
+        reference_trajectory([(np.ones(6), 0.0)], start)
+    with pytest.raises(InputError, match=r"speed must be in \(0, 1\]"):
+        reference_trajectory([(np.ones(6), 1.5)], start, max_speed=1.0)
+    with pytest.raises(InputError, match="pose must be a finite"):
+        reference_trajectory([(np.full(6, np.nan), 0.5)], start)
+    with pytest.raises(InputError, match="beyond its limits"):
+        reference_trajectory([(np.full(6, 3.0), 0.5)], start, limits=np.tile([-2.0, 2.0], (6, 1)))
+
+
+def test_batch_truth_from_truths_and_arrays():
+    sim = Simulator("gen3_lite", seed=3)
+    robot, t = sim.robot, sim.truth
+    other = TrueRobot.draw(robot, seed=4, viscous=[0.1] * 6)
+    bt = BatchTruth.from_truths(robot, [t, other], payload=[0.0, 0.4], gravity=TILT)
+    assert bt.worlds == 2 and bt.com_offset.shape == (2, 7, 3)
+    np.testing.assert_array_equal(
+        bt.com_offset[0, robot.link_index("ARM")], t.params.com_offset["ARM"]
+    )
+    np.testing.assert_array_equal(bt.viscous[1], 0.1)
+    np.testing.assert_array_equal(bt.gravity, [TILT, TILT])
+    back = bt.true_robot(robot, 0)
+    np.testing.assert_array_equal(back.friction, t.friction)
+    np.testing.assert_array_equal(back.params.com_offset["ARM"], t.params.com_offset["ARM"])
+    arrays = BatchTruth.from_arrays(robot, t.ratio, t.friction, payload=np.zeros(5))
+    assert arrays.worlds == 5 and np.all(arrays.gravity == [0.0, 0.0, -9.81])
+    with pytest.raises(InputError, match="ratio must be > 0"):
+        BatchTruth.from_arrays(robot, -t.ratio, t.friction)
+    with pytest.raises(InputError, match="does not fit"):
+        BatchTruth.from_arrays(robot, t.ratio, np.ones(4))
+
+
+def test_servo_gains_are_the_cpu_simulators():
+    truth = _cpu_truth()
+    sim = Simulator("gen3_lite", truth=truth)
+    bt = BatchTruth.from_truths(sim.robot, [truth, TrueRobot.draw(sim.robot, seed=9)])
+    kp, kv = servo_gains(sim.robot, true_inertial_params(sim.robot, bt))
+    np.testing.assert_allclose(kp[0], sim.servo_kp, rtol=1e-12)
+    np.testing.assert_allclose(kv[0], sim.servo_kv, rtol=1e-12)
+    assert np.abs(kp[1] / kp[0] - 1).max() > 1e-4  # each world's own inertia
+
+
+# ----------------------------------------------------------------------------- one MJX run
+@pytest.fixture(scope="module")
+def batch():
+    """4 worlds through one plan: 0 = the CPU test truth, 1 = the same with current noise,
+    2 = friction-free with a 0.6 kg payload, 3 = friction-free on a base tilted 20 deg."""
+    truth = _cpu_truth()
+    cpu = Simulator("gen3_lite", truth=truth)
+    robot, arm = cpu.robot, cpu.arm
+    start = arm.read().q.copy()
+    q_ref = reference_trajectory(_plan(start), start)
+    cpu_rec = [arm.cycle(ArmCommand(position=r)) for r in q_ref]
+    bare = dataclasses.replace(truth, params=RobotParams("gen3_lite", truth.ratio, [0.0] * 6))
+    truths = [truth, dataclasses.replace(truth, current_noise=0.05), bare, bare]
+    gravity = np.array([[0.0, 0.0, -9.81]] * 3 + [TILT])
+    bt = BatchTruth.from_truths(robot, truths, payload=[0.0, 0.0, 0.6, 0.0], gravity=gravity)
+    mjx_sim = MjxSimulator(robot, payload=True)
+    chunks, calls = [], []
+    rec = mjx_sim.run(
+        bt,
+        q_ref,
+        seed=5,
+        progress=lambda done, total: calls.append((done, total)),
+        on_chunk=lambda first, c: chunks.append((first, c)),
+    )
+    return dict(
+        cpu=cpu,
+        cpu_rec=cpu_rec,
+        start=start,
+        q_ref=q_ref,
+        truth=bt,
+        sim=mjx_sim,
+        rec=rec,
+        chunks=chunks,
+        calls=calls,
+    )
+
+
+def test_mjx_agrees_with_the_cpu_simulator(batch):
+    """Same truth, no noise, same q_ref in POSITION mode: the tolerances of ``AGREEMENT``,
+    through stick-slip and the servo clamped at joint 1's effort limit."""
+    rec, cpu_rec = batch["rec"], batch["cpu_rec"]
+    q = np.array([s.q for s in cpu_rec])
+    dq = np.array([s.dq for s in cpu_rec])
+    cur = np.array([s.current for s in cpu_rec])
+    assert rec.q.shape == (4, len(q), 6)
+    np.testing.assert_allclose(rec.q_start[0], batch["start"], atol=AGREEMENT["q"], rtol=0)
+    np.testing.assert_allclose(rec.q[0], q, atol=AGREEMENT["q"], rtol=0)
+    np.testing.assert_allclose(rec.dq[0], dq, atol=AGREEMENT["dq"], rtol=0)
+    np.testing.assert_allclose(rec.current[0], cur, atol=AGREEMENT["current"], rtol=0)
+    np.testing.assert_allclose(rec.t, [s.t for s in cpu_rec], atol=1e-12)
+    assert np.abs(dq).max() > 0.3 and np.abs(cur).max() > 1.0  # a real motion under load
+    limit = batch["cpu"].effort[1] * batch["truth"].ratio[0, 1]
+    assert (np.abs(cur[:, 1]) >= limit - 1e-9).sum() > 5  # the servo saturated
+    assert (rec.fault_step == -1).all()
+
+
+def test_noise_is_additive_gaussian_and_leaves_the_motion_alone(batch):
+    rec = batch["rec"]
+    np.testing.assert_array_equal(rec.q[1], rec.q[0])
+    e = rec.current[1] - rec.current[0]
+    assert abs(e.mean()) < 0.01 and 0.045 < e.std() < 0.055
+
+
+def _residual(robot, rec, w, params, gravity, kv, ratio):
+    """Friction-free world w: applied torque minus (M + dt kv) qacc + C dq + g (N m), at every
+    step the servo is not clamped; the step's qacc is the recorded velocity difference / dt."""
+    q, dq = rec.q[w, :-1], rec.dq[w, :-1]  # the state each step starts from
+    qacc = np.diff(rec.dq[w], axis=0) / DT
+    tau = rec.current[w, 1:] / ratio
+    mass, bias = _dynamics(robot)(q, dq, params, jnp.asarray(gravity))
+    model = np.einsum("tij,tj->ti", np.asarray(mass), qacc) + DT * kv * qacc + np.asarray(bias)
+    free = (np.abs(tau) < 0.999 * robot.effort_limits).all(axis=1)
+    return (tau - model)[free]
+
+
+def _dynamics(robot, cache={}):  # noqa: B006 - one compiled function per robot
+    if id(robot) not in cache:
+        tree = robot.tree
+
+        @jax.jit
+        def fn(q, dq, params, g):
+            mass = jax.vmap(lambda x: dynamics.mass_matrix(tree, x, params))(q)
+            bias = jax.vmap(lambda x, v: dynamics.bias(tree, x, v, params, g))(q, dq)
+            return mass, bias
+
+        cache[id(robot)] = (robot, fn)
+    return cache[id(robot)][1]
+
+
+def test_payload_and_mounting_follow_the_true_dynamics(batch):
+    """Friction-free worlds 2 (0.6 kg payload: its own MJX body) and 3 (tilted base): the
+    recorded torque is M qacc + C dq + g of jaxcomp's dynamics with the payload folded into
+    GRIPPER_FRAME / the tilted gravity, plus the servo's implicit damping, to 1e-6 N m."""
+    rec, bt, robot = batch["rec"], batch["truth"], batch["cpu"].robot
+    params = true_inertial_params(robot, bt)
+    kp, kv = servo_gains(robot, params)
+    for w in (2, 3):
+        pw = jax.tree_util.tree_map(lambda a, w=w: a[w], params)
+        res = _residual(robot, rec, w, pw, bt.gravity[w], kv[w], bt.ratio[w])
+        assert len(res) > 300 and np.abs(res).max() < 1e-6, np.abs(res).max()
+        # without the payload / with upright gravity the model misses by far
+        plain = jax.tree_util.tree_map(lambda a: a[0], params)
+        wrong = _residual(robot, rec, w, plain, bt.gravity[0], kv[w], bt.ratio[w])
+        assert np.abs(wrong).max() > 0.1
+
+
+def test_chunks_stream_the_same_samples(batch):
+    rec, chunks, calls = batch["rec"], batch["chunks"], batch["calls"]
+    t = len(batch["q_ref"])
+    assert calls[-1] == (t, t) and [c[0] for c in calls] == sorted(c[0] for c in calls)
+    q = np.concatenate([c.q for _, c in chunks], axis=1)
+    cur = np.concatenate([c.current for _, c in chunks], axis=1)
+    np.testing.assert_array_equal(q, rec.q)
+    np.testing.assert_array_equal(cur, rec.current)
+    assert [first for first, _ in chunks][0] == 0
+
+
+# ----------------------------------------------------------------------------- slow
+@pytest.mark.slow
+def test_float32_decimated_run_tracks_float64(batch):
+    """float32, every 2nd sample: within 1e-4 rad and 0.05 A (the current noise) of the
+    float64 run (measured: 2.4e-5 rad, 0.036 A at the start of a move, median 1e-4 A)."""
+    sim32 = MjxSimulator(batch["cpu"].robot, payload=True, dtype=jnp.float32)
+    rec = sim32.run(batch["truth"], batch["q_ref"], seed=5, every=2)
+    ref = batch["rec"]
+    assert rec.q.dtype == np.float32 and rec.q.shape[1] == -(-ref.q.shape[1] // 2)
+    np.testing.assert_allclose(rec.t, ref.t[::2])
+    np.testing.assert_allclose(rec.q, ref.q[:, ::2], atol=1e-4)
+    quiet = [0, 2, 3]  # world 1's noise draws differ between float32 and float64
+    cur, cur64 = rec.current[quiet], ref.current[quiet, ::2]
+    np.testing.assert_allclose(cur, cur64, atol=0.05)
+    assert np.median(np.abs(cur - cur64)) < 1e-3
+
+
+@pytest.mark.slow
+def test_sharded_over_two_devices_agrees_with_the_cpu_simulator():
+    """A 2-device CPU mesh (forced host devices), 3 worlds padded to 4."""
+    script = textwrap.dedent(
+        """
+        import dataclasses, numpy as np
+        from jaxcomp.hardware import ArmCommand, Simulator
+        from jaxcomp.hardware.mjx_sim import (AGREEMENT, BatchTruth, Move, MjxSimulator,
+            batch_mesh, reference_trajectory)
+        sim = Simulator("gen3_lite", seed=3)
+        truth = dataclasses.replace(sim.truth, current_noise=0.0)
+        cpu = Simulator("gen3_lite", truth=truth)
+        start = cpu.arm.read().q.copy()
+        q_ref = reference_trajectory([Move(start + 0.05, 0.5)], start)[:150]
+        q = np.array([cpu.arm.cycle(ArmCommand(position=r)).q for r in q_ref])
+        mesh = batch_mesh(2)
+        bt = BatchTruth.from_truths(cpu.robot, [truth] * 3)
+        rec = MjxSimulator(cpu.robot, mesh=mesh, chunk_steps=50).run(bt, q_ref)
+        assert rec.q.shape == (3, 150, 6), rec.q.shape
+        err = np.abs(rec.q - q[None]).max()
+        assert err < AGREEMENT["q"], err
+        print("sharded ok", err)
+        """
+    )
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    out = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=900
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "sharded ok" in out.stdout
+
+
+@pytest.mark.slow
+def test_bench_runs_on_cpu():
+    out = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "experiments" / "bench_mjx.py"),
+            "--worlds",
+            "2",
+            "--steps",
+            "20",
+            "--settle",
+            "10",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "world-steps/s" in out.stdout and "backend" in out.stdout
