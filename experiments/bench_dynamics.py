@@ -3,6 +3,11 @@
 Prints, side by side: one call of gravity + site Jacobian + mass matrix (median and p99 latency,
 inputs already on the device and as numpy arrays) next to the same three pinocchio calls, and
 vmapped gravity throughput over 10^5 poses. Run: python experiments/bench_dynamics.py
+
+JAX runs a call synchronously on the calling thread here (``jax_cpu_enable_async_dispatch``
+off), as a 1 kHz controller should: with JAX's default asynchronous CPU dispatch, XLA runs any
+program it estimates at >= 1000 flops on a worker thread, and on one pinned core that hand-off
+costs ~20 us per call. ``--async-dispatch`` measures JAX's default instead.
 """
 
 import os
@@ -50,12 +55,27 @@ def latency(fn, args_list, repeats: int) -> np.ndarray:
     return times * 1e6
 
 
+def compiled(fn, *args):
+    """jax.jit(fn), compiled for args; returns (function, compile seconds)."""
+    jitted = jax.jit(fn)
+    t0 = time.perf_counter()
+    jitted.lower(*args).compile()
+    seconds = time.perf_counter() - t0
+    jax.block_until_ready(jitted(*args))
+    return jitted, seconds
+
+
 def main() -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=20000, help="calls timed per variant")
     parser.add_argument("--poses", type=int, default=100_000, help="poses for the vmap figure")
+    parser.add_argument(
+        "--async-dispatch", action="store_true", help="keep JAX's default asynchronous dispatch"
+    )
     parser.add_argument("--json", help="also write the figures to this JSON file")
     args = parser.parse_args()
+    # before the CPU backend starts (the first computation below)
+    jax.config.update("jax_cpu_enable_async_dispatch", bool(args.async_dispatch))
 
     robot = jaxcomp.load_robot("gen3_lite")
     tree = robot.tree
@@ -63,28 +83,45 @@ def main() -> dict:
     rng = np.random.default_rng(0)
     lo, hi = robot.joint_limits.T
     qs = rng.uniform(lo, hi, (256, robot.nv))
+    q0 = jnp.asarray(qs[0])
 
-    @jax.jit
-    def step(q):
+    def one_pass(q):  # g + J + M of one call, as the old three-function row
+        out = dynamics.kinematics_and_dynamics(tree, q, site)
+        return out.gravity, out.jacobian, out.mass_matrix
+
+    def separate(q):  # the same three quantities from the separate functions
         return (
             dynamics.gravity(tree, q),
             dynamics.site_jacobian(tree, q, site),
             dynamics.mass_matrix(tree, q),
         )
 
-    t0 = time.perf_counter()
-    jax.block_until_ready(step(jnp.asarray(qs[0])))
-    compile_s = time.perf_counter() - t0
+    def controller(q):  # everything the controller reads: g, J, x, R, M (a NamedTuple)
+        return dynamics.kinematics_and_dynamics(tree, q, site)
+
+    functions = {"one_pass": one_pass, "separate": separate, "controller": controller}
+    jitted, compile_s = {}, {}
+    for name, fn in functions.items():
+        jitted[name], compile_s[name] = compiled(fn, q0)
+
     on_device = [(jnp.asarray(q),) for q in qs]
     as_numpy = [(q,) for q in qs]
 
-    def run_block(q):
-        jax.block_until_ready(step(q))
+    def timer(fn):
+        def run(q):
+            jax.block_until_ready(fn(q))
+
+        return run
 
     for a in on_device[:50]:
-        run_block(*a)
-    t_dev = latency(run_block, on_device, args.repeats)
-    t_np = latency(run_block, as_numpy, args.repeats)
+        for fn in jitted.values():
+            timer(fn)(*a)
+    rows = {
+        "jax_device_inputs": latency(timer(jitted["one_pass"]), on_device, args.repeats),
+        "jax_numpy_inputs": latency(timer(jitted["one_pass"]), as_numpy, args.repeats),
+        "jax_separate_functions": latency(timer(jitted["separate"]), on_device, args.repeats),
+        "jax_controller_5_outputs": latency(timer(jitted["controller"]), on_device, args.repeats),
+    }
 
     pm = pin.buildModelFromXML(to_urdf(tree))
     pd = pm.createData()
@@ -95,32 +132,30 @@ def main() -> dict:
         pin.computeFrameJacobian(pm, pd, q, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
         pin.crba(pm, pd, q)
 
-    t_pin = latency(pin_step, as_numpy, args.repeats)
+    rows["pinocchio"] = latency(pin_step, as_numpy, args.repeats)
 
-    gravity_batch = jax.jit(jax.vmap(lambda q: dynamics.gravity(tree, q)))
+    gravity_batch, compile_s["gravity_vmap"] = compiled(
+        jax.vmap(lambda q: dynamics.gravity(tree, q)), jnp.asarray(qs[:1])
+    )
     big = jnp.asarray(rng.uniform(lo, hi, (args.poses, robot.nv)))
     jax.block_until_ready(gravity_batch(big))
     reps = []
-    for _ in range(5):
+    for _ in range(7):
         t0 = time.perf_counter()
         jax.block_until_ready(gravity_batch(big))
         reps.append(time.perf_counter() - t0)
-    vmap_rate = args.poses / min(reps)
+    vmap_rate = args.poses / float(np.median(reps))
 
     t0 = time.perf_counter()
     for q in qs[:100].repeat(10, axis=0):
         pin.computeGeneralizedGravity(pm, pd, q)
     pin_rate = 1000 / (time.perf_counter() - t0)
 
-    rows = {
-        "jax_device_inputs": t_dev,
-        "jax_numpy_inputs": t_np,
-        "pinocchio": t_pin,
-    }
     result = {
         "cpu": cpu_name(),
         "jax": jax.__version__,
         "pinocchio": pin.__version__,
+        "async_dispatch": bool(args.async_dispatch),
         "compile_s": compile_s,
         "latency_us": {
             k: {"median": float(np.median(v)), "p99": float(np.percentile(v, 99))}
@@ -128,14 +163,20 @@ def main() -> dict:
         },
         "gravity_poses_per_s": {"jax_vmap": vmap_rate, "pinocchio_loop": pin_rate},
     }
+    mode = "asynchronous (JAX default)" if args.async_dispatch else "synchronous"
     print(f"Gen3 Lite, gravity + EE Jacobian + mass matrix, one call, one core of {result['cpu']}")
-    print(f"{'variant':<22}{'median us':>12}{'p99 us':>12}")
+    print(f"JAX dispatch: {mode}")
+    print(f"{'variant':<26}{'median us':>12}{'p99 us':>12}")
     for k, v in result["latency_us"].items():
-        print(f"{k:<22}{v['median']:>12.1f}{v['p99']:>12.1f}")
-    print(f"(compile {compile_s:.2f} s; targets: median <= 40 us, p99 <= 150 us)")
-    print(f"\nGravity throughput over {args.poses} poses")
-    print(f"{'jax vmap':<22}{vmap_rate:>14.3e} poses/s   (target >= 1e6)")
-    print(f"{'pinocchio loop':<22}{pin_rate:>14.3e} poses/s")
+        print(f"{k:<26}{v['median']:>12.1f}{v['p99']:>12.1f}")
+    print(
+        "(jax_* rows except separate_functions: dynamics.kinematics_and_dynamics; "
+        "targets: median <= 40 us, p99 <= 150 us)"
+    )
+    print("compile s: " + ", ".join(f"{k} {v:.2f}" for k, v in compile_s.items()))
+    print(f"\nGravity throughput over {args.poses} poses (median of 7)")
+    print(f"{'jax vmap':<26}{vmap_rate:>14.3e} poses/s   (target >= 1e6)")
+    print(f"{'pinocchio loop':<26}{pin_rate:>14.3e} poses/s")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(result, fh, indent=2)

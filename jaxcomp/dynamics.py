@@ -8,6 +8,10 @@ arm, its base frame). Sign conventions follow MuJoCo and pinocchio:
     M(q) ddq + C(q, dq) dq + g(q) = tau
 
 so ``gravity`` returns g(q), the joint torque that holds the arm still against gravity.
+
+``kinematics_and_dynamics`` (``jaxcomp.fast_dynamics``) returns g(q), a site's Jacobian and
+pose and M(q) together, for a controller's one call per cycle; the separate functions below
+suit batches and automatic differentiation (e.g. Coriolis terms from ``mass_matrix``).
 """
 
 from typing import NamedTuple
@@ -17,8 +21,29 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcomp import components as cp
+from jaxcomp import fast_dynamics
+from jaxcomp.fast_dynamics import KinematicsDynamics, kinematics_and_dynamics
 from jaxcomp.kinematic_tree import KinematicTree
 from jaxcomp.params import InertialParams
+
+__all__ = [
+    "STANDARD_GRAVITY",
+    "Frames",
+    "KinematicsDynamics",
+    "OperationalSpace",
+    "bias",
+    "body_com",
+    "coriolis",
+    "coriolis_matrix",
+    "forward_kinematics",
+    "gravity",
+    "kinematics_and_dynamics",
+    "mass_matrix",
+    "operational_space",
+    "site_jacobian",
+    "site_pose",
+    "subtree_com",
+]
 
 STANDARD_GRAVITY = (0.0, 0.0, -9.81)
 
@@ -53,55 +78,6 @@ def _skew(v: np.ndarray) -> np.ndarray:
 
 def _params(tree: KinematicTree, params: InertialParams | None) -> InertialParams:
     return tree.nominal if params is None else params
-
-
-class _FrameComponents(NamedTuple):
-    body_rot: list  # nb component matrices
-    body_pos: list  # nb component vectors, m
-    axis: list  # nv component vectors
-    anchor: list  # nv component vectors, m
-
-
-def _joint_local(tree: KinematicTree, j: int, d) -> tuple[list, list]:
-    """Rotation and translation (components) that joint j applies at displacement d."""
-    axis = cp.const_vec(tree.joint_axis[j])
-    if not tree.is_hinge[j]:
-        return cp.const_mat(np.eye(3)), cp.scale(d, axis)
-    k1 = _skew(tree.joint_axis[j])
-    k1c, k2c = cp.const_mat(k1), cp.const_mat(k1 @ k1)
-    s, c = jnp.sin(d), 1.0 - jnp.cos(d)
-    rot = [
-        [
-            cp.add(cp.add(float(i == k), cp.mul(k1c[i][k], s)), cp.mul(k2c[i][k], c))
-            for k in range(3)
-        ]
-        for i in range(3)
-    ]
-    anchor = cp.const_vec(tree.joint_pos[j])
-    return rot, cp.vec_sub(anchor, cp.mat_vec(rot, anchor))
-
-
-def _frame_components(tree: KinematicTree, q: jax.Array) -> _FrameComponents:
-    body_rot: list = [None] * tree.nb
-    body_pos: list = [None] * tree.nb
-    axis: list = [None] * tree.nv
-    anchor: list = [None] * tree.nv
-    for b in range(tree.nb):
-        p = tree.parent[b]
-        fixed_rot, fixed_pos = cp.const_mat(tree.rot[b]), cp.const_vec(tree.pos[b])
-        if p < 0:
-            rot, pos = fixed_rot, fixed_pos
-        else:
-            rot = cp.mat_mat(body_rot[p], fixed_rot)
-            pos = cp.vec_add(body_pos[p], cp.mat_vec(body_rot[p], fixed_pos))
-        for j in tree.body_joints[b]:
-            jrot, jpos = _joint_local(tree, j, q[j] - tree.joint_ref[j])
-            pos = cp.vec_add(pos, cp.mat_vec(rot, jpos))
-            rot = cp.mat_mat(rot, jrot)
-            axis[j] = cp.mat_vec(rot, cp.const_vec(tree.joint_axis[j]))
-            anchor[j] = cp.vec_add(pos, cp.mat_vec(rot, cp.const_vec(tree.joint_pos[j])))
-        body_rot[b], body_pos[b] = rot, pos
-    return _FrameComponents(body_rot, body_pos, axis, anchor)
 
 
 def forward_kinematics(tree: KinematicTree, q: jax.Array) -> Frames:
@@ -197,6 +173,22 @@ def subtree_com(
     return jnp.where(mass[:, None] > 0, weighted / safe[:, None], origin), mass
 
 
+def _joint_trig(tree: KinematicTree, q: jax.Array) -> dict:
+    """sin and cos of every hinge displacement, as (1,) components, computed once.
+
+    The vector of sines and cosines goes through an identity matrix product: a dot is a kernel
+    XLA never fuses into its consumers, so under ``jax.vmap`` they are computed once per pose
+    rather than once per output joint.
+    """
+    hinges = [j for j in range(tree.nv) if tree.is_hinge[j]]
+    if not hinges:
+        return {}
+    d = jnp.stack([q[j] - tree.joint_ref[j] for j in hinges])
+    trig = jnp.concatenate(cp.sincos(d))[None, :] @ np.eye(2 * len(hinges))
+    n = len(hinges)
+    return {j: (trig[0, i : i + 1], trig[0, n + i : n + i + 1]) for i, j in enumerate(hinges)}
+
+
 def gravity(
     tree: KinematicTree,
     q: jax.Array,
@@ -206,34 +198,74 @@ def gravity(
     """Generalized gravity g(q) (nv,), N m or N: the torque that holds the arm against gravity.
 
     ``gravity_vector`` (3,) m/s^2 in the world (base) frame; default (0, 0, -9.81).
+
+    Recursive, in joint frames (entry by entry, model constants folded): the gravity vector is
+    carried out to every joint frame and each subtree's mass and first moment back in, so a
+    pose costs a few hundred flops and one sine and cosine per hinge.
     """
     p = _params(tree, params)
     if gravity_vector is None:
         g = cp.const_vec(STANDARD_GRAVITY)
     else:
-        g = [gravity_vector[k] for k in range(3)]
-    fc = _frame_components(tree, q)
-    weighted: list = [None] * tree.nb  # subtree sum of m * com, kg m
-    sub_mass: list = [None] * tree.nb  # subtree mass, kg
-    for b in range(tree.nb):
-        m_b = _entry(p.mass, (b,))
-        com_b = [_entry(p.com, (b, k)) for k in range(3)]
-        c = cp.vec_add(fc.body_pos[b], cp.mat_vec(fc.body_rot[b], com_b))
-        weighted[b], sub_mass[b] = cp.scale(m_b, c), m_b
-    for b in reversed(range(tree.nb)):  # children come after their parents
-        par = tree.parent[b]
-        if par >= 0:
-            weighted[par] = cp.vec_add(weighted[par], weighted[b])
-            sub_mass[par] = cp.add(sub_mass[par], sub_mass[b])
-    out = []
-    for j in range(tree.nv):
-        b = tree.joint_body[j]
+        gravity_vector = jnp.asarray(gravity_vector, dtype=float)
+        g = [gravity_vector[k : k + 1] for k in range(3)]
+    plan = fast_dynamics._plan(tree)
+    trig = _joint_trig(tree, q)
+    nv = tree.nv
+    rots, trans = [], []  # each joint frame in its parent lane's frame (components)
+    for j in range(nv):
+        fixed_rot = cp.const_mat(plan.pre[j][:3, :3])
+        fixed_pos = cp.const_vec(plan.pre[j][:3, 3])
         if tree.is_hinge[j]:
-            lever = cp.vec_sub(weighted[b], cp.scale(sub_mass[b], fc.anchor[j]))
-            out.append(cp.dot(cp.cross(fc.axis[j], lever), g))
+            k1 = _skew(tree.joint_axis[j])
+            k1c, k2c = cp.const_mat(k1), cp.const_mat(k1 @ k1)
+            s, c = trig[j]
+            c = 1.0 - c
+            rot = [
+                [
+                    cp.add(cp.add(float(i == k), cp.mul(k1c[i][k], s)), cp.mul(k2c[i][k], c))
+                    for k in range(3)
+                ]
+                for i in range(3)
+            ]
+            anchor = cp.const_vec(tree.joint_pos[j])
+            pos = cp.vec_sub(anchor, cp.mat_vec(rot, anchor))
         else:
-            out.append(cp.mul(sub_mass[b], cp.dot(fc.axis[j], g)))
-    return -cp.pack(out, q[0], (tree.nv,))
+            rot = cp.const_mat(np.eye(3))
+            pos = cp.scale(q[j : j + 1] - tree.joint_ref[j], cp.const_vec(tree.joint_axis[j]))
+        rots.append(cp.mat_mat(fixed_rot, rot))
+        trans.append(cp.vec_add(fixed_pos, cp.mat_vec(fixed_rot, pos)))
+    # gravity (m/s^2) in every joint frame, root to leaves
+    grav: list = [None] * nv
+    for j in range(nv):
+        up = g if plan.parent[j] < 0 else grav[plan.parent[j]]
+        grav[j] = [cp.total(cp.mul(rots[j][k][i], up[k]) for k in range(3)) for i in range(3)]
+    # mass (kg) and first moment (kg m) of each joint's subtree in its frame, leaves to root
+    mass: list = [0.0] * nv
+    moment: list = [[0.0, 0.0, 0.0] for _ in range(nv)]
+    for b in plan.moving:
+        lane, offset = plan.frame_of[b]
+        m_b = _entry(p.mass, (b,))
+        com = [_entry(p.com, (b, k)) for k in range(3)]
+        c = cp.vec_add(cp.const_vec(offset[:3, 3]), cp.mat_vec(cp.const_mat(offset[:3, :3]), com))
+        mass[lane] = cp.add(mass[lane], m_b)
+        moment[lane] = cp.vec_add(moment[lane], cp.scale(m_b, c))
+    for j in reversed(range(nv)):
+        up = plan.parent[j]
+        if up >= 0:
+            mass[up] = cp.add(mass[up], mass[j])
+            carried = cp.vec_add(cp.scale(mass[j], trans[j]), cp.mat_vec(rots[j], moment[j]))
+            moment[up] = cp.vec_add(moment[up], carried)
+    out = []
+    for j in range(nv):
+        axis = cp.const_vec(tree.joint_axis[j])
+        if tree.is_hinge[j]:
+            lever = cp.vec_sub(moment[j], cp.scale(mass[j], cp.const_vec(tree.joint_pos[j])))
+            out.append(cp.mul(-1.0, cp.dot(axis, cp.cross(lever, grav[j]))))
+        else:
+            out.append(cp.mul(-1.0, cp.mul(mass[j], cp.dot(axis, grav[j]))))
+    like = q[:1]
+    return jnp.concatenate([cp.to_array(v, like) for v in out])
 
 
 def _entry(array, index):

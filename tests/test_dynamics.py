@@ -1,4 +1,5 @@
-"""JAX dynamics against MuJoCo and pinocchio on 1000 random poses, for three robots."""
+"""JAX dynamics against MuJoCo and pinocchio on 1000 random poses, for three robots (and the
+mobile manipulator for the one-pass function)."""
 
 import jax
 import jax.numpy as jnp
@@ -10,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 import jaxcomp
 from arms import branched_prismatic, offset_arm_7dof
+from jaxcomp import components as cp
 from jaxcomp import dynamics
 from jaxcomp.urdf import to_urdf
 
@@ -63,9 +65,11 @@ class Case:
                 dynamics.bias(tree, q, dq),
                 jnp.stack([dynamics.site_jacobian(tree, q, s) for s in sites]),
                 jnp.stack([dynamics.site_pose(tree, q, s)[0] for s in sites]),
+                dynamics.kinematics_and_dynamics(tree, q, 0),  # the one-pass function, site 0
             )
 
         self.jax = jax.tree.map(np.asarray, jax.jit(jax.vmap(evaluate))(self.q, self.dq))
+        self.kd = self.jax[5]  # fields (N_POSES, ...)
 
     def to_pin(self, x: np.ndarray) -> np.ndarray:
         out = np.zeros(self.pm.nq)
@@ -116,6 +120,13 @@ def test_against_mujoco(case):
             mujoco.mj_jacSite(m, d, jacp, jacr, s)
             np.testing.assert_allclose(case.jax[3][k, s], np.vstack([jacp, jacr]), atol=TOL)
             np.testing.assert_allclose(case.jax[4][k, s], d.site_xpos[s], atol=TOL)
+            if s == 0:
+                kd = case.kd
+                np.testing.assert_allclose(kd.gravity[k], g_ref.qfrc_bias, atol=TOL, rtol=0)
+                np.testing.assert_allclose(kd.mass_matrix[k], full_m, atol=TOL, rtol=0)
+                np.testing.assert_allclose(kd.jacobian[k], np.vstack([jacp, jacr]), atol=TOL)
+                np.testing.assert_allclose(kd.position[k], d.site_xpos[s], atol=TOL)
+                np.testing.assert_allclose(kd.rotation[k].ravel(), d.site_xmat[s], atol=TOL)
 
 
 def test_against_pinocchio(case):
@@ -132,12 +143,22 @@ def test_against_pinocchio(case):
         mass = pin.crba(pm, pd, q)
         mass = np.triu(mass) + np.triu(mass, 1).T
         np.testing.assert_allclose(case.jax[1][k], mass[np.ix_(perm, perm)], atol=TOL, rtol=0)
+        np.testing.assert_allclose(
+            case.kd.mass_matrix[k], mass[np.ix_(perm, perm)], atol=TOL, rtol=0
+        )
         pin.computeJointJacobians(pm, pd, q)
         pin.updateFramePlacements(pm, pd)
         for s, f in enumerate(frames):
             jac = pin.getFrameJacobian(pm, pd, f, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
             np.testing.assert_allclose(case.jax[3][k, s], jac[:, perm], atol=TOL, rtol=0)
             np.testing.assert_allclose(case.jax[4][k, s], pd.oMf[f].translation, atol=TOL)
+            if s == 0:
+                kd = case.kd
+                np.testing.assert_allclose(kd.jacobian[k], jac[:, perm], atol=TOL, rtol=0)
+                np.testing.assert_allclose(kd.position[k], pd.oMf[f].translation, atol=TOL)
+                np.testing.assert_allclose(kd.rotation[k], pd.oMf[f].rotation, atol=TOL)
+                g_pin = pin.computeGeneralizedGravity(pm, pd, q)[perm]
+                np.testing.assert_allclose(kd.gravity[k], g_pin, atol=TOL, rtol=0)
 
 
 def test_gravity_grad_matches_finite_differences(case):
@@ -207,3 +228,92 @@ def test_coriolis_matrix_is_passive(case):
     skew = np.asarray(mdot - 2 * c)
     np.testing.assert_allclose(skew, -skew.T, atol=1e-10)
     np.testing.assert_allclose(c @ dq, c_dq, atol=1e-10)
+
+
+def test_kinematics_and_dynamics_takes_params_and_gravity():
+    """Runtime inertial parameters and gravity vector: the values of the separate functions,
+    and gradients with respect to the parameters (against finite differences)."""
+    robot = jaxcomp.load_robot("gen3_lite")
+    tree = robot.tree
+    nominal = robot.nominal_params()
+    rng = np.random.default_rng(3)
+    params = nominal._replace(
+        mass=nominal.mass * rng.uniform(0.8, 1.2, tree.nb),
+        com=nominal.com + rng.uniform(-0.01, 0.01, (tree.nb, 3)),
+    )
+    gvec = jnp.asarray([1.0, -2.0, -9.5])
+    site = robot.site_index("end_effector")
+
+    @jax.jit
+    def fast(q, com):
+        def run(c):
+            return dynamics.kinematics_and_dynamics(tree, q, site, params._replace(com=c), gvec)
+
+        def loss(c):
+            g = run(c).gravity
+            return g @ g
+
+        pos, rot = dynamics.site_pose(tree, q, site)
+        p = params._replace(com=com)
+        want = (
+            dynamics.gravity(tree, q, p, gvec),
+            dynamics.site_jacobian(tree, q, site),
+            pos,
+            rot,
+            dynamics.mass_matrix(tree, q, p),
+        )
+        return run(com), loss(com), jax.grad(loss)(com), want
+
+    for q in rng.uniform(-2.5, 2.5, (3, tree.nv)):
+        out, _, grad, want = fast(jnp.asarray(q), params.com)
+        for a, b in zip(out, want, strict=True):
+            np.testing.assert_allclose(a, b, atol=1e-12, rtol=0)
+    eps, com = 1e-6, np.asarray(params.com)
+    fd = np.zeros_like(com)
+    for idx in np.ndindex(com.shape):
+        plus, minus = com.copy(), com.copy()
+        plus[idx] += eps
+        minus[idx] -= eps
+        fd[idx] = (fast(jnp.asarray(q), plus)[1] - fast(jnp.asarray(q), minus)[1]) / (2 * eps)
+    np.testing.assert_allclose(grad, fd, atol=1e-6 * np.abs(fd).max())
+    assert np.abs(fd).max() > 1e-3
+
+
+def test_mobile_arm_against_mujoco():
+    """Slides, three joints in one body, a jointless link at an offset, depth 9."""
+    robot = jaxcomp.load_robot("mobile_gen3_lite")
+    tree, m = robot.tree, robot.model
+    lo, hi = robot.joint_limits.T
+    q = np.random.default_rng(4).uniform(np.maximum(lo, -3.0), np.minimum(hi, 3.0), (30, tree.nv))
+
+    site = robot.site_index("end_effector")
+    kd = jax.jit(jax.vmap(lambda q: dynamics.kinematics_and_dynamics(tree, q, site)))(q)
+    d = mujoco.MjData(m)
+    full_m = np.zeros((m.nv, m.nv))
+    jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+    for k in range(len(q)):
+        d.qpos[:] = q[k]
+        mujoco.mj_forward(m, d)
+        mujoco.mj_fullM(m, d, full_m)
+        mujoco.mj_jacSite(m, d, jacp, jacr, site)
+        np.testing.assert_allclose(kd.gravity[k], d.qfrc_bias, atol=TOL, rtol=0)
+        np.testing.assert_allclose(kd.mass_matrix[k], full_m, atol=TOL, rtol=0)
+        np.testing.assert_allclose(kd.jacobian[k], np.vstack([jacp, jacr]), atol=TOL)
+        np.testing.assert_allclose(kd.position[k], d.site_xpos[site], atol=TOL)
+        np.testing.assert_allclose(kd.rotation[k].ravel(), d.site_xmat[site], atol=TOL)
+
+
+def test_sincos_matches_libm_and_differentiates():
+    x = np.concatenate(
+        [
+            np.linspace(-20.0, 20.0, 100001),
+            np.random.default_rng(6).uniform(-1e6, 1e6, 20000),
+            [0.0, -0.0, np.pi / 2, -np.pi, 1e-300],
+        ]
+    )
+    s, c = jax.jit(cp.sincos)(x)
+    np.testing.assert_allclose(s, np.sin(x), atol=5e-16, rtol=0)
+    np.testing.assert_allclose(c, np.cos(x), atol=5e-16, rtol=0)
+    ds, dc = jax.jvp(cp.sincos, (0.7,), (1.0,))[1]
+    assert ds == pytest.approx(np.cos(0.7), abs=1e-15)
+    assert dc == pytest.approx(-np.sin(0.7), abs=1e-15)
