@@ -25,6 +25,19 @@ PerJoint = float | tuple[float, ...]
 
 #: Keyframe used as nullspace posture when a gains object names none.
 POSTURE_KEYFRAME = "preferred"
+#: Values of ``ImpedanceGains.friction_direction``.
+FRICTION_DIRECTIONS = ("torque", "motion")
+#: Fields that ``ImpedanceGains.tracking()`` changes from the paper's figures.
+TRACKING_PRESET = {
+    "stiffness": 400.0,
+    "damping": 30.0,
+    "friction_direction": "motion",
+    "friction_threshold": 0.02,
+    "friction_band": 0.05,
+    "nullspace_damping": 0.3,
+}
+#: Named presets of ``ImpedanceGains`` (``ImpedanceGains.preset(name)``).
+IMPEDANCE_PRESETS = ("paper", "tracking")
 #: Motor current limit (A) when the model has no ``jaxcomp_current_limit`` custom numeric.
 DEFAULT_CURRENT_LIMIT = 11.0
 
@@ -133,6 +146,14 @@ class ImpedanceGains:
         error_clip: m, the Cartesian error's norm is clipped to this (paper: 0.1).
         deadband: m, errors of smaller norm count as zero (paper's code: 0.001).
         friction_threshold: t of Eq. (16), rad/s (paper's code: 0.3).
+        friction_direction: which torque gives the direction of the at-rest (torque-based)
+            friction compensation of Eq. (16): "torque" = sign(tau), the paper's; "motion" =
+            sign(tau - g(q)), the torque meant to move the joint (gravity compensation holds a
+            joint, it does not move it: with "torque" a gravity-loaded joint at rest is pushed
+            by l towards its gravity torque and needs 2 l of spring torque to move the other way).
+        friction_band: N m, width of the linear zone of that at-rest sign: sign(x) becomes
+            clip(x / friction_band, -1, 1), continuous at x = 0, so a joint at rest whose torque
+            hovers around zero is not kicked by +-l every cycle (0 = the paper's hard sign).
         current_limit: A, magnitude per joint; None = the model's ``jaxcomp_current_limit``
             custom numeric (Gen3 Lite: 11 A), else 11 A.
         current_rate_limit: A/s, the most a joint's current may change per second (default
@@ -156,6 +177,8 @@ class ImpedanceGains:
     error_clip: float = 0.1
     deadband: float = 0.001
     friction_threshold: float = 0.3
+    friction_direction: str = "torque"
+    friction_band: float = 0.0
     current_limit: PerJoint | None = None
     current_rate_limit: float = 2000.0
     period: float = 0.001
@@ -183,6 +206,13 @@ class ImpedanceGains:
             )
         t = _number(self.friction_threshold, "friction_threshold (rad/s)", positive=True)
         set_(self, "friction_threshold", t)
+        if self.friction_direction not in FRICTION_DIRECTIONS:
+            raise InputError(
+                f"friction_direction must be one of {', '.join(FRICTION_DIRECTIONS)}, got "
+                f"{self.friction_direction!r}"
+            )
+        band = _number(self.friction_band, "friction_band (N m)", nonneg=True)
+        set_(self, "friction_band", band)
         if self.current_limit is not None:
             lim = _per_joint(self.current_limit, "current_limit (A)", positive=True)
             set_(self, "current_limit", lim)
@@ -191,6 +221,35 @@ class ImpedanceGains:
         set_(self, "period", _number(self.period, "period (s)", positive=True))
         damp = _number(self.singularity_damping, "singularity_damping (1/kg)", nonneg=True)
         set_(self, "singularity_damping", damp)
+
+    @classmethod
+    def preset(cls, name: str, **changes) -> ImpedanceGains:
+        """A named preset (``IMPEDANCE_PRESETS``: "paper", "tracking") with ``changes``."""
+        if name not in IMPEDANCE_PRESETS:
+            raise InputError(
+                f"unknown gains preset {name!r}; presets: {', '.join(IMPEDANCE_PRESETS)}"
+            )
+        return getattr(cls, name)(**changes)
+
+    @classmethod
+    def paper(cls, **changes) -> ImpedanceGains:
+        """The paper's figures (Section V-B and its authors' code): K_d 40 N/m, D_d 3 N s/m,
+        Eq. (16) with sign(tau) at rest and t = 0.3 rad/s, nullspace K_n 0.125, D_n 0.025;
+        the same as ``ImpedanceGains()``. ``changes`` override fields."""
+        return cls(**changes)
+
+    @classmethod
+    def tracking(cls, **changes) -> ImpedanceGains:
+        """Gains that hold the Exp. 2 and 3 behaviour against the Gen3 Lite's full friction
+        (joint 1 loses 1.48 A = 4.8 N m): K_d 400 N/m and D_d 30 N s/m (a 4 N spring cannot
+        move a joint that sticks with 4.8 N m), Eq. (16)'s at-rest direction from the motion
+        torque tau - g (``friction_direction="motion"``) with a 0.05 N m linear zone, full
+        velocity-based compensation from t = 0.02 rad/s, and nullspace damping D_n 0.3 N m s/rad
+        (with its friction compensated, the light wrist would otherwise swing towards the
+        posture at the 2 rad/s overspeed limit). ``changes`` override fields."""
+        values = dict(TRACKING_PRESET)
+        values.update(changes)
+        return cls(**values)
 
     @property
     def orientation(self) -> bool:

@@ -36,13 +36,21 @@ CPU allows) and sends it.
 
 Any watchdog trip, hardware fault, Ctrl-C or exception ends the run with the arm in POSITION
 mode and the base stopped, before anything else is done (``safe_stop`` in a ``finally``).
-The recording is written incrementally (``RecordingWriter``, one part per 1000 samples) and
-joined into ``out_dir/recording.npz`` at the end; ``out_dir/timing.json`` holds the timing.
+The recording is written incrementally (``RecordingWriter``, one part per 1000 samples, handed
+over a block at a time) and joined into ``out_dir/recording.npz`` at the end;
+``out_dir/timing.json`` holds the timing.
+
+Per-cycle cost (the loop runs ~150-250 us of Python and JAX per 1 ms): the controller runs as
+its ``packed_step`` (one numpy vector in, one out), frames are computed on Python floats,
+samples go into preallocated blocks, and the garbage collector is off during the run (the loop
+frees its objects by reference counting). For real time, call ``timing.configure_jax_for_control``
+before JAX runs anything and run the loop under ``timing.realtime_priority``.
 """
 
 from __future__ import annotations
 
 import enum
+import gc
 import logging
 import math
 import queue
@@ -55,7 +63,6 @@ from dataclasses import replace as dc_replace
 from pathlib import Path
 from typing import Any
 
-import jax.numpy as jnp
 import mujoco
 import numpy as np
 
@@ -232,7 +239,12 @@ def arm_params(params: RobotParams | None, arm: Robot) -> RobotParams | None:
 
 
 class _Law:
-    """Adapter of a controller to the loop: mode, command, end-effector position (arm frame)."""
+    """Adapter of a controller to the loop: mode, command, end-effector position (arm frame).
+
+    The controller runs as its ``packed_step`` on one preallocated numpy vector (q | dq |
+    previous command | target pos | vel | acc [| rot], see ``impedance.packed_size``) that the
+    loop fills in place: one host-to-device and one device-to-host copy per cycle.
+    """
 
     def __init__(self, controller, arm: Arm):
         self.controller = controller
@@ -253,13 +265,19 @@ class _Law:
             )
         if controller.n != arm.n:
             raise InputError(f"the controller has {controller.n} joints, the arm {arm.n}")
-        self._prev = None
+        n = self.n = controller.n
+        self.x = np.zeros(controller.packed_size)  # the packed input, filled in place
+        self.target = self.x[3 * n : 3 * n + 9]  # pos | vel | acc, arm frame
+        self._prev = self.x[2 * n : 3 * n]
+        self._current = self.mode is ControlMode.CURRENT
 
     def start(self, state: ArmState) -> None:
         """Reset the command memory to what the arm applies when it switches (measured
         current, clipped to the limits; zero velocity)."""
-        if self.mode is ControlMode.CURRENT:
-            self._prev = jnp.asarray(np.clip(state.current, -self.limit, self.limit))
+        if self._current:
+            np.clip(state.current, -self.limit, self.limit, out=self._prev)
+        else:
+            self._prev[:] = 0.0
 
     @property
     def orientation(self) -> bool:
@@ -267,21 +285,25 @@ class _Law:
         gains = getattr(self.controller, "gains", None)
         return bool(getattr(gains, "orientation", False))
 
-    def step(self, q, dq, pos, vel, acc, rot=None) -> tuple[np.ndarray, np.ndarray]:
-        """(command (n,) A or rad/s, end-effector position (3,) m, arm frame); ``rot`` (3, 3):
-        the target orientation in the arm frame (orientation gains only)."""
-        if self.mode is ControlMode.CURRENT:
-            if rot is None:
-                cur, diag = self.controller.step(q, dq, pos, vel, acc, self._prev)
-            else:
-                cur, diag = self.controller.step(q, dq, pos, vel, acc, self._prev, rot)
-            self._prev = cur
-            return np.asarray(cur), np.asarray(diag.data)[:3]
-        dq_cmd, diag = self.controller.step(q, pos, vel)
-        return np.asarray(dq_cmd), np.asarray(diag.data)[:3]
+    def set_rot(self, rot: np.ndarray) -> None:
+        """The target orientation (3, 3) in the arm frame (orientation gains only)."""
+        k = 3 * self.n + 9
+        self.x[k : k + 9] = rot.ravel()
+
+    def run(self, q, dq) -> tuple[np.ndarray, np.ndarray]:
+        """(command (n,) A or rad/s, end-effector position (3,) m, arm frame) at q, dq for the
+        target already in ``self.target`` (and ``set_rot``); read-only views of one output."""
+        n, x = self.n, self.x
+        x[:n] = q
+        x[n : 2 * n] = dq
+        out = np.asarray(self.controller.packed_step(x))
+        cmd = out[:n]
+        if self._current:
+            self._prev[:] = cmd
+        return cmd, out[n : n + 3]
 
     def command(self, value: np.ndarray) -> ArmCommand:
-        if self.mode is ControlMode.CURRENT:
+        if self._current:
             return ArmCommand(current=value)
         return ArmCommand(velocity=value)
 
@@ -292,13 +314,51 @@ class _Law:
 _EXTRA = {"target": (3,), "ee": (3,), "base": (3,)}
 
 
-class _Recorder:
-    """Per-sample rows into preallocated blocks of ``block`` samples, each full block handed
-    to ``RecordingWriter`` (which flushes it to a part file): on a writer thread in real time
-    (the loop never waits for the disk), inline in lock step (deterministic)."""
+class _BlockWriter(RecordingWriter):
+    """A ``RecordingWriter`` that takes whole blocks of samples (``append_block``) instead of
+    one ``append`` per sample (~20 us each: eight small array copies, then a flush that stacks
+    the per-sample rows again, holding the GIL for milliseconds). The blocks go into the
+    writer's field buffers as arrays, which its ``flush`` saves as they are.
+    (Worth moving into ``RecordingWriter`` itself; never mix with ``append``.)"""
 
-    def __init__(self, writer: RecordingWriter, n: int, block: int, threaded: bool):
+    def append_block(self, t, q, dq, current, **extra) -> None:
+        """Add k samples: t (k,) s, q, dq, current (k, n), the extra fields (k, ...)."""
+        k = len(t)
+        buf = self._buf
+        buf["t"].extend(t.tolist())  # a list: the parent's flush tests it for emptiness
+        blocks = {"q": q, "dq": dq, "current": current, **extra}
+        blocks["joint"] = np.full(k, -1)
+        blocks["direction"] = np.zeros(k, np.int64)
+        for name, block in blocks.items():
+            old = buf[name]
+            block = np.ascontiguousarray(block)
+            buf[name] = block if isinstance(old, list) else np.concatenate([old, block])
+        self._count += k
+        self.last_t = float(t[-1])
+        if len(buf["t"]) >= self.flush_every:
+            self.flush()
+
+
+class _Recorder:
+    """Per-sample rows into preallocated blocks of ``block`` samples (one row of
+    t | q | dq | current | command | target | ee | base per cycle), each full block handed to
+    the writer (which flushes it to a part file): on a writer thread in real time (the loop
+    never waits for the disk), inline in lock step."""
+
+    def __init__(self, writer: _BlockWriter, n: int, block: int, threaded: bool):
         self.writer, self.n, self.block = writer, n, block
+        c = np.cumsum([1, n, n, n, n, 3, 3, 3])
+        self._cols = {
+            "t": 0,
+            "q": slice(c[0], c[1]),
+            "dq": slice(c[1], c[2]),
+            "current": slice(c[2], c[3]),
+            "command": slice(c[3], c[4]),
+            "target": slice(c[4], c[5]),
+            "ee": slice(c[5], c[6]),
+            "base": slice(c[6], c[7]),
+        }
+        self.width = int(c[-1])
         self._new()
         self._error: BaseException | None = None
         self._queue: queue.Queue | None = None
@@ -309,45 +369,36 @@ class _Recorder:
             self._thread.start()
 
     def _new(self) -> None:
-        b, n = self.block, self.n
-        self.t = np.zeros(b)
-        self.q, self.dq, self.cur, self.cmd = (np.zeros((b, n)) for _ in range(4))
-        self.target, self.ee, self.base = (np.zeros((b, 3)) for _ in range(3))
+        self.rows = np.empty((self.block, self.width))
         self.i = 0
 
-    def add(self, t, q, dq, current, target, ee, base, command) -> None:
-        i = self.i
-        self.t[i] = t
-        self.q[i], self.dq[i], self.cur[i], self.cmd[i] = q, dq, current, command
-        self.target[i], self.ee[i], self.base[i] = target, ee, base
-        self.i = i + 1
+    def add(self, t, q, dq, current, command, frames) -> None:
+        """One sample: t s, q, dq, current, command (n,), and ``frames`` the 9 floats target
+        (world m) | ee (world m) | base pose (x m, y m, yaw rad)."""
+        n = self.n
+        row = self.rows[self.i]
+        row[0] = t
+        row[1 : 1 + n] = q
+        row[1 + n : 1 + 2 * n] = dq
+        row[1 + 2 * n : 1 + 3 * n] = current
+        row[1 + 3 * n : 1 + 4 * n] = command
+        row[1 + 4 * n :] = frames
+        self.i += 1
         if self.i == self.block:
             self._emit()
 
     def _emit(self) -> None:
         if self.i == 0:
             return
-        k = self.i
-        rows = (
-            self.t[:k],
-            self.q[:k],
-            self.dq[:k],
-            self.cur[:k],
-            self.target[:k],
-            self.ee[:k],
-            self.base[:k],
-            self.cmd[:k],
-        )
+        rows = self.rows[: self.i]
         self._new()
         if self._queue is not None:
             self._queue.put(rows)
         else:
             self._write(rows)
 
-    def _write(self, rows) -> None:
-        append = self.writer.append
-        for t, q, dq, c, tg, ee, b, cmd in zip(*rows, strict=True):
-            append(t, q, dq, c, -1, 0, target=tg, ee=ee, base=b, command=cmd)
+    def _write(self, rows: np.ndarray) -> None:
+        self.writer.append_block(**{name: rows[:, col] for name, col in self._cols.items()})
 
     def _run(self) -> None:
         while True:
@@ -425,7 +476,7 @@ class ControlResult:
         ]
         if tm.get("cycles"):
             c, p = tm["compute"], tm["period"]
-            speed = tm.get("speed_x_realtime")
+            speed, cpu = tm.get("speed_x_realtime"), tm.get("speed_x_realtime_cpu")
             lines.append(
                 f"timing ({tm['mode']}): compute median {c['median_us']:.0f} us, p99 "
                 f"{c['p99_us']:.0f} us, max {c['max_us']:.0f} us; period median "
@@ -433,6 +484,7 @@ class ControlResult:
                 f" max {p.get('max_us', math.nan):.0f} us; missed deadlines "
                 f"{tm['missed_deadlines']} ({100 * tm['missed_fraction']:.2f} %)"
                 + (f"; {speed:.1f}x real time" if speed else "")
+                + (f" ({cpu:.1f}x per CPU second)" if speed and cpu else "")
             )
         if self.recording_path is not None:
             lines.append(f"recording: {self.recording_path}")
@@ -577,12 +629,10 @@ def run_control(
     if law.orientation:
         work.hold_orientation(rot0, pose0)
     law.start(state)
-    pos, vel, acc, _, _, rz, _ = _targets(traj, 0.0, pose0, np.zeros(3), mount, guidance, False)
-    cmd0, _ = law.step(state.q, state.dq, pos, vel, acc, work.rot(rz))
-    wd.check_command(cmd0, state.t)
+    wd.check_command(work.first_command(state, pose0), state.t)
     law.start(state)
 
-    writer = RecordingWriter(
+    writer = _BlockWriter(
         out / RECORDING,
         model,
         arm.n,
@@ -600,9 +650,12 @@ def run_control(
     switch_interval = sys.getswitchinterval()
     work.recorder = recorder
     period_ns = int(PERIOD * 1e9)
+    gc_enabled = gc.isenabled()
     try:
         if realtime:
             sys.setswitchinterval(1e-4)  # the recorder thread yields the GIL quickly
+        # no collector pauses inside the loop: it frees its garbage by reference counting
+        gc.disable()
         arm.set_modes(law.mode)
         law.start(state)
         cmd = work(state)
@@ -639,6 +692,8 @@ def run_control(
     finally:
         stop_errors = safe_stop(arm, base)
         sys.setswitchinterval(switch_interval)
+        if gc_enabled:
+            gc.enable()
         timer.finish(state.t - t0)
         result = _finish(
             recorder, timer, work, out, kind, reason, cycles, state.t - t0, stop_errors, mode
@@ -650,35 +705,12 @@ def run_control(
     return result
 
 
-def _targets(traj, t, pose, twist, mount: ArmMount, guidance: bool, compensate: bool):
-    """The target now: (pos, vel, acc) in the arm frame (m, m/s, m/s^2; vel relative to the
-    moving arm base when ``compensate``), and its position in the base frame and the world."""
-    sample = traj(t)
-    rz = _rz(float(pose[2]))
-    ob = mount._base_origin(pose)
-    if guidance:
-        target_b, vel_b, acc_b = sample.pos, sample.vel, sample.acc
-        target_w = ob + rz @ target_b
-    else:
-        target_w = sample.pos
-        target_b = rz.T @ (target_w - ob)
-        vel_b, acc_b = rz.T @ sample.vel, rz.T @ sample.acc
-        if compensate:  # minus the base's velocity at the target point (base frame)
-            w = float(twist[2])
-            vel_b = vel_b - np.array([twist[0] - w * target_b[1], twist[1] + w * target_b[0], 0.0])
-    if mount.identity_rotation:
-        pos = target_b - mount.position
-        vel, acc = vel_b, acc_b
-    else:
-        rmt = mount.rotation.T
-        pos = rmt @ (target_b - mount.position)
-        vel, acc = rmt @ vel_b, rmt @ acc_b
-    return pos, vel, acc, target_b, target_w, rz, ob
-
-
 class _Cycle:
     """The work of one cycle after its state arrived: targets, command, checks, base twist,
-    one recorded sample; accumulates the tracking error |ee - target| (world, m)."""
+    one recorded sample; accumulates the tracking error |ee - target| (world, m).
+
+    The frame maths (base odometry, mount, target) is done on Python floats and written
+    straight into the controller's packed input: no small numpy arrays per cycle."""
 
     def __init__(
         self, law, wd, traj, t0, base, follower, mount, guidance, desired_b, recorder, compensate
@@ -687,11 +719,19 @@ class _Cycle:
         self.base, self.follower, self.mount = base, follower, mount
         self.guidance, self.desired_b = guidance, desired_b
         self.recorder, self.compensate = recorder, compensate
-        self.zero = np.zeros(3)
+        self._pm = tuple(float(v) for v in mount.position)
+        self._rm = tuple(float(v) for v in mount.rotation.ravel())  # row-major
+        self._pivot = (float(mount.pivot[0]), float(mount.pivot[1]))
+        self._desired = tuple(float(v) for v in desired_b)
         self.sq_sum, self.max_err, self.last_err, self.samples = 0.0, 0.0, math.nan, 0
         self.rot_b = None  # target orientation of the end effector in the base frame (guidance)
         self.rot_w = None  # ... in the world (tracking)
-        self.target_w = self.zero  # the last target, world m
+        self._target_w = (0.0, 0.0, 0.0)  # the last target, world m
+
+    @property
+    def target_w(self) -> np.ndarray:
+        """(3,) m, the last target in the world."""
+        return np.array(self._target_w)
 
     def hold_orientation(self, rot_a: np.ndarray, pose0: np.ndarray) -> None:
         """Keep the end effector's orientation ``rot_a`` (arm frame, at the start) fixed in
@@ -702,39 +742,104 @@ class _Cycle:
         else:
             self.rot_w = _rz(float(pose0[2])) @ rot_b
 
-    def rot(self, rz: np.ndarray) -> np.ndarray | None:
-        """The target orientation in the arm frame now, for the base yaw rotation ``rz``
-        (None: no orientation task)."""
+    def rot(self, yaw: float) -> np.ndarray | None:
+        """The target orientation in the arm frame now, at base yaw ``yaw`` rad (None: no
+        orientation task)."""
         rm = self.mount.rotation
         if self.rot_b is not None:
             return rm.T @ self.rot_b
         if self.rot_w is not None:
-            return rm.T @ (rz.T @ self.rot_w)
+            return rm.T @ (_rz(yaw).T @ self.rot_w)
         return None
 
+    def targets(self, t: float, px, py, yaw, vx, vy, wz, compensate: bool):
+        """Write the target at time t (s from the start) into the controller's input (arm
+        frame: pos m, vel m/s relative to the moving arm base when ``compensate``, acc m/s^2)
+        for the base at odometry pose (px, py, yaw) moving at twist (vx, vy, wz); returns the
+        target in the base frame and the world and the frame (cos yaw, sin yaw, origin)."""
+        sample = self.traj(t)
+        (p0, p1, p2), (v0, v1, v2), (a0, a1, a2) = (
+            sample.pos.tolist(),
+            sample.vel.tolist(),
+            sample.acc.tolist(),
+        )
+        c, s = math.cos(yaw), math.sin(yaw)
+        qx, qy = self._pivot  # base origin in the world: (px, py, 0) + pivot - Rz pivot
+        ox, oy = px + qx - (c * qx - s * qy), py + qy - (s * qx + c * qy)
+        if self.guidance:  # the trajectory is in the base frame
+            tb = (p0, p1, p2)
+            tw = (ox + c * p0 - s * p1, oy + s * p0 + c * p1, p2)
+        else:  # in the world: to the base frame (Rz^T)
+            tw = (p0, p1, p2)
+            dx, dy = p0 - ox, p1 - oy
+            tb = (c * dx + s * dy, -s * dx + c * dy, p2)
+            v0, v1 = c * v0 + s * v1, -s * v0 + c * v1
+            a0, a1 = c * a0 + s * a1, -s * a0 + c * a1
+            if compensate:  # minus the base's velocity at the target point (base frame)
+                v0 -= vx - wz * tb[1]
+                v1 -= vy + wz * tb[0]
+        m, (m0, m1, m2) = self._rm, self._pm  # arm frame: Rm^T (x_b - p_m)
+        e0, e1, e2 = tb[0] - m0, tb[1] - m1, tb[2] - m2
+        self.law.target[:] = (
+            m[0] * e0 + m[3] * e1 + m[6] * e2,
+            m[1] * e0 + m[4] * e1 + m[7] * e2,
+            m[2] * e0 + m[5] * e1 + m[8] * e2,
+            m[0] * v0 + m[3] * v1 + m[6] * v2,
+            m[1] * v0 + m[4] * v1 + m[7] * v2,
+            m[2] * v0 + m[5] * v1 + m[8] * v2,
+            m[0] * a0 + m[3] * a1 + m[6] * a2,
+            m[1] * a0 + m[4] * a1 + m[7] * a2,
+            m[2] * a0 + m[5] * a1 + m[8] * a2,
+        )
+        return tb, tw, c, s, ox, oy
+
+    def first_command(self, state: ArmState, pose0: np.ndarray) -> np.ndarray:
+        """The command for ``state`` at the start (t = 0, base at rest at ``pose0``), with no
+        side effect but the controller's input (the setup check)."""
+        px, py, yaw = (float(v) for v in pose0)
+        self.targets(0.0, px, py, yaw, 0.0, 0.0, 0.0, False)
+        if self.rot_b is not None or self.rot_w is not None:
+            self.law.set_rot(self.rot(yaw))
+        return self.law.run(state.q, state.dq)[0]
+
     def __call__(self, state: ArmState) -> np.ndarray:
-        mount = self.mount
         if self.base is not None:
             odom = self.base.odometry()
             pose, twist = odom.pose, odom.twist
             self.wd.check_odometry(pose, twist, state.t)
+            px, py, yaw = pose.tolist()
+            vx, vy, wz = twist.tolist()
         else:
-            pose = twist = self.zero
+            px = py = yaw = vx = vy = wz = 0.0
         q = state.q
-        pos, vel, acc, target_b, target_w, rz, ob = _targets(
-            self.traj, state.t - self.t0, pose, twist, mount, self.guidance, self.compensate
+        tb, tw, c, s, ox, oy = self.targets(
+            state.t - self.t0, px, py, yaw, vx, vy, wz, self.compensate
         )
-        rot = None if self.rot_b is None and self.rot_w is None else self.rot(rz)
-        cmd, ee_a = self.law.step(q, state.dq, pos, vel, acc, rot)
+        if self.rot_b is not None or self.rot_w is not None:
+            self.law.set_rot(self.rot(yaw))
+        cmd, ee_a = self.law.run(q, state.dq)
         self.wd.check_command(cmd, state.t)
-        ee_b = mount.arm_to_base(ee_a)
+        m, (m0, m1, m2) = self._rm, self._pm  # ee in the base frame: p_m + Rm ee_a
+        a0, a1, a2 = ee_a.tolist()
+        eb = (
+            m0 + m[0] * a0 + m[1] * a1 + m[2] * a2,
+            m1 + m[3] * a0 + m[4] * a1 + m[5] * a2,
+            m2 + m[6] * a0 + m[7] * a1 + m[8] * a2,
+        )
         if self.follower is not None:
-            p_d = target_b if self.guidance else self.desired_b
-            self.base.send_twist(self.follower.twist(ee_b, p_d, q))
-        self.target_w = target_w
-        self.recorder.add(state.t, q, state.dq, state.current, target_w, ob + rz @ ee_b, pose, cmd)
-        d = ee_b - target_b
-        e2 = float(d @ d)
+            p_d = tb if self.guidance else self._desired
+            self.base.send_twist(self.follower.twist(eb, p_d, q))
+        self._target_w = tw
+        self.recorder.add(
+            state.t,
+            q,
+            state.dq,
+            state.current,
+            cmd,
+            (*tw, ox + c * eb[0] - s * eb[1], oy + s * eb[0] + c * eb[1], eb[2], px, py, yaw),
+        )
+        d0, d1, d2 = eb[0] - tb[0], eb[1] - tb[1], eb[2] - tb[2]
+        e2 = d0 * d0 + d1 * d1 + d2 * d2
         self.sq_sum += e2
         self.last_err = math.sqrt(e2)
         if self.last_err > self.max_err:

@@ -59,6 +59,10 @@ class Profile:
     length: float
     speed: float
     accel: float
+    # derived once (the 1 kHz loop evaluates the profile every cycle)
+    _t_acc: float = field(init=False, repr=False, compare=False, default=0.0)
+    _peak: float = field(init=False, repr=False, compare=False, default=0.0)
+    _total: float = field(init=False, repr=False, compare=False, default=0.0)
 
     def __post_init__(self) -> None:
         for name in ("speed", "accel"):
@@ -67,40 +71,39 @@ class Profile:
                 raise InputError(f"profile {name} must be a positive number, got {value}")
         if not (self.length >= 0):
             raise InputError(f"profile length must be >= 0 m, got {self.length}")
-
-    @property
-    def _ramp(self) -> tuple[float, float]:
-        """(ramp time s, peak speed m/s)."""
         t_acc = self.speed / self.accel
         if math.isfinite(self.length) and self.accel * t_acc**2 > self.length:
             t_acc = math.sqrt(self.length / self.accel)  # triangular
-        return t_acc, self.accel * t_acc
+        peak = self.accel * t_acc
+        if not math.isfinite(self.length):
+            total = math.inf
+        elif self.length <= 0:
+            total = 0.0
+        else:
+            total = 2 * t_acc + (self.length - self.accel * t_acc**2) / peak
+        object.__setattr__(self, "_t_acc", t_acc)
+        object.__setattr__(self, "_peak", peak)
+        object.__setattr__(self, "_total", total)
 
     @property
     def duration(self) -> float:
         """s (``math.inf`` for an endless profile)."""
-        if not math.isfinite(self.length):
-            return math.inf
-        if self.length <= 0:
-            return 0.0
-        t_acc, peak = self._ramp
-        return 2 * t_acc + (self.length - self.accel * t_acc**2) / peak
+        return self._total
 
     def __call__(self, t: float) -> tuple[float, float, float]:
         """(s m, ds/dt m/s, d2s/dt2 m/s^2) at time t s (clamped to [0, duration])."""
         if self.length <= 0 or t <= 0:
             return 0.0, 0.0, 0.0
-        a = self.accel
-        t_acc, peak = self._ramp
+        a, t_acc = self.accel, self._t_acc
         if t < t_acc:
             return 0.5 * a * t * t, a * t, a
-        total = self.duration
+        total = self._total
         if t >= total:
             return self.length, 0.0, 0.0
         rest = total - t
         if rest < t_acc:
             return self.length - 0.5 * a * rest * rest, a * rest, -a
-        return 0.5 * a * t_acc**2 + peak * (t - t_acc), peak, 0.0
+        return 0.5 * a * t_acc * t_acc + self._peak * (t - t_acc), self._peak, 0.0
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -115,6 +118,16 @@ class Segment(ABC):
     def at(self, s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(p m, dp/ds, d2p/ds2 1/m), each (3,)."""
 
+    def sample(self, s: float, sd: float, sdd: float) -> TargetSample:
+        """Position, velocity and acceleration at arc length s moving at s' = sd m/s,
+        s'' = sdd m/s^2: p(s), p' sd, p'' sd^2 + p' sdd."""
+        p, dp, ddp = self.at(s)
+        return TargetSample(p, dp * sd, ddp * (sd * sd) + dp * sdd)
+
+
+def _floats(v) -> tuple[float, float, float]:
+    return float(v[0]), float(v[1]), float(v[2])
+
 
 @dataclass(frozen=True)
 class Line(Segment):
@@ -127,11 +140,27 @@ class Line(Segment):
     def length(self) -> float:  # type: ignore[override]
         return float(np.linalg.norm(self.end - self.start))
 
-    def at(self, s: float):
+    def _unit(self) -> np.ndarray:
         d = self.end - self.start
         n = float(np.linalg.norm(d))
-        u = d / n if n > _EPS else np.zeros(3)
-        return self.start + u * min(s, n), u, np.zeros(3)
+        return d / n if n > _EPS else np.zeros(3)
+
+    def at(self, s: float):
+        return self.start + self._unit() * min(s, self.length), self._unit(), np.zeros(3)
+
+    def sample(self, s: float, sd: float, sdd: float) -> TargetSample:
+        # scalar maths on cached floats: a few us per call at 1 kHz
+        fast = self.__dict__.get("_fast")
+        if fast is None:
+            fast = (_floats(self.start), _floats(self._unit()), self.length)
+            object.__setattr__(self, "_fast", fast)
+        (x0, y0, z0), (ux, uy, uz), n = fast
+        s = min(s, n)
+        return TargetSample(
+            np.array((x0 + ux * s, y0 + uy * s, z0 + uz * s)),
+            np.array((ux * sd, uy * sd, uz * sd)),
+            np.array((ux * sdd, uy * sdd, uz * sdd)),
+        )
 
 
 @dataclass(frozen=True)
@@ -158,6 +187,25 @@ class Arc(Segment):
         radial = c * self.u + sn * self.w
         tangent = sign * (-sn * self.u + c * self.w)
         return self.centre + self.radius * radial, tangent, -radial / self.radius
+
+    def sample(self, s: float, sd: float, sdd: float) -> TargetSample:
+        fast = self.__dict__.get("_fast")
+        if fast is None:
+            fast = (_floats(self.centre), _floats(self.u), _floats(self.w))
+            object.__setattr__(self, "_fast", fast)
+        (cx, cy, cz), (ux, uy, uz), (wx, wy, wz) = fast
+        r = self.radius
+        sign = 1.0 if self.sweep >= 0 else -1.0
+        phi = self.phi0 + sign * s / r
+        c, sn = math.cos(phi), math.sin(phi)
+        rx, ry, rz = c * ux + sn * wx, c * uy + sn * wy, c * uz + sn * wz  # radial
+        tx, ty, tz = sign * (c * wx - sn * ux), sign * (c * wy - sn * uy), sign * (c * wz - sn * uz)
+        k = -sd * sd / r  # centripetal
+        return TargetSample(
+            np.array((cx + r * rx, cy + r * ry, cz + r * rz)),
+            np.array((tx * sd, ty * sd, tz * sd)),
+            np.array((k * rx + sdd * tx, k * ry + sdd * ty, k * rz + sdd * tz)),
+        )
 
 
 # ----------------------------------------------------------------------------- trajectories
@@ -220,9 +268,7 @@ class Piecewise(Trajectory):
         while i > 0 and t < self._starts[i]:
             i -= 1
         seg, prof = self.pieces[i]
-        s, sd, sdd = prof(t - self._starts[i])
-        p, dp, ddp = seg.at(s)
-        return TargetSample(p, dp * sd, ddp * sd * sd + dp * sdd)
+        return seg.sample(*prof(t - self._starts[i]))
 
 
 # ----------------------------------------------------------------------------- specs

@@ -20,7 +20,13 @@ import numpy as np
 
 from jaxcomp import dynamics
 from jaxcomp.control.gains import VelocityGains
-from jaxcomp.control.impedance import check_joint_vector, check_vector3, inverse3
+from jaxcomp.control.impedance import (
+    check_joint_vector,
+    check_vector3,
+    inverse3,
+    packed_size,
+    unpack_state,
+)
 from jaxcomp.robot import Robot
 
 
@@ -67,6 +73,18 @@ def velocity_step_fn(robot: Robot, gains: VelocityGains, site: str = "end_effect
     return step
 
 
+def velocity_packed_fn(step_fn, n: int):
+    """``step_fn`` on the impedance controller's packed input (``impedance.packed_size``;
+    dq, prev and acc are unused) returning dq (n) | ``VelocityDiagnostics.data`` (7)."""
+
+    def packed(x):
+        q, _, _, pos, vel, _, _ = unpack_state(x, n, False)
+        dq, diag = step_fn(q, pos, vel)
+        return jnp.concatenate([dq, diag.data])
+
+    return packed
+
+
 class VelocityController:
     """Reference Cartesian velocity controller (see module doc).
 
@@ -76,6 +94,8 @@ class VelocityController:
             VelocityDiagnostics)``; q rad (n,), target_pos m (3,), target_vel m/s (3,), arm
             base frame; device arrays, no checks (``check_state`` makes checked ones).
         step_fn: the same function unjitted.
+        packed_step: jitted ``packed_step(x) -> y`` for the 1 kHz loop: x packed as the
+            impedance controller's (``packed_size``), y = dq (n) | diagnostics data (7).
     """
 
     def __init__(
@@ -85,6 +105,8 @@ class VelocityController:
         self.gains = VelocityGains() if gains is None else gains
         self.step_fn = velocity_step_fn(robot, self.gains, site)
         self.step = jax.jit(self.step_fn)
+        self.packed_size = packed_size(self.n)
+        self.packed_step = jax.jit(velocity_packed_fn(self.step_fn, self.n))
 
     def check_state(self, q, target_pos, target_vel=None) -> tuple:
         """Validated device arrays for ``step`` (target_vel None: zeros); InputError if bad."""

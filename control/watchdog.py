@@ -90,6 +90,17 @@ class Watchdog:
         self._any_saturated = False
         self._sat_at = None if self.saturation is None else self.saturation - 1e-9
         self._last_ns: int | None = None
+        # the same limits as floats for the per-cycle tests (``_within``)
+        self._limit = self.current_limit.tolist()
+        self._below_sat = None if self._sat_at is None else np.nextafter(self._sat_at, -1).tolist()
+
+    @staticmethod
+    def _within(values: list, limits: list) -> bool:
+        """Every value <= its limit (False for NaN): a few floats, cheaper than numpy."""
+        for x, lim in zip(values, limits, strict=True):
+            if not x <= lim:
+                return False
+        return True
 
     def _names(self, mask) -> list[str]:
         return [self.joint_names[i] for i in np.flatnonzero(mask)]
@@ -100,7 +111,8 @@ class Watchdog:
         if state.faults:
             raise WatchdogTrip(FAULT, "actuator fault: " + "; ".join(state.faults), t)
         q, dq, cur = state.q, state.dq, state.current
-        if not math.isfinite(float(q.sum()) + float(dq.sum()) + float(cur.sum()) + t):
+        # one finite test for all (x @ x is inf/NaN when any entry is; dots are cheaper than sums)
+        if not math.isfinite(float(q @ q) + float(dq @ dq) + float(cur @ cur) + t):
             bad = ~(np.isfinite(q) & np.isfinite(dq) & np.isfinite(cur))
             raise WatchdogTrip(
                 NAN_STATE,
@@ -141,13 +153,14 @@ class Watchdog:
 
     def check_odometry(self, pose: np.ndarray, twist: np.ndarray, t: float | None = None) -> None:
         """Check the base odometry (pose x, y, yaw; twist vx, vy, wz)."""
-        if not math.isfinite(float(pose.sum()) + float(twist.sum())):
+        if not math.isfinite(float(pose @ pose) + float(twist @ twist)):
             raise WatchdogTrip(NAN_ODOMETRY, f"NaN/inf in the base odometry: {pose}, {twist}", t)
 
     def check_command(self, current: np.ndarray, t: float | None = None) -> None:
         """Check one current command (n,) A before it is sent; raises ``WatchdogTrip``."""
         mag = np.abs(current)
-        if not (mag <= self.current_limit).all():  # NaN fails the comparison too
+        mags = mag.tolist()
+        if not self._within(mags, self._limit):  # NaN fails the comparison too
             finite = np.isfinite(current)
             if not finite.all():
                 names = self._names(~finite)
@@ -162,8 +175,8 @@ class Watchdog:
                 self._names(over),
             )
         if self.saturation is not None:
-            sat = mag >= self._sat_at
-            if sat.any():
+            if not self._within(mags, self._below_sat):  # some |current| >= _sat_at
+                sat = mag >= self._sat_at
                 self._saturated = np.where(sat, self._saturated + 1, 0)
                 self._any_saturated = True
                 long = self._saturated > self.max_saturated_cycles

@@ -17,6 +17,8 @@ Lock-step by default (each ``cycle`` advances 1 ms, as fast as the CPU allows); 
 from __future__ import annotations
 
 import logging
+import math
+import operator
 import os
 import sys
 import time
@@ -108,9 +110,11 @@ class Simulator:
         self._views()
         self._badr = m.jnt_dofadr[self.base_joints]
         self._bqadr = m.jnt_qposadr[self.base_joints]
+        self._base_views()
         self._ratio = self.truth.ratio.copy() if n else np.ones(0)
         limited = m.jnt_actfrclimited[self.arm_joints].astype(bool)
         self.effort = np.where(limited, np.abs(m.jnt_actfrcrange[self.arm_joints]).max(1), np.inf)
+        self._effort = self.effort.tolist()
         self._hard = self.robot.joint_limits[self.arm_joints]
         self.following_error = float(following_error)
         self.overspeed = float(overspeed)
@@ -149,6 +153,10 @@ class Simulator:
         self._v_q = d.qpos[self._qsl]
         self._v_dq = d.qvel[self._dsl]
         self._v_qfrc = d.qfrc_actuator[self._dsl]
+
+    def _base_views(self) -> None:
+        """Indices (slices when contiguous) of the base joints' qpos and qvel."""
+        self._bqsl, self._bdsl = _fast_index(self._bqadr), _fast_index(self._badr)
 
     # ----------------------------------------------------------------- model
     def _build(self) -> mujoco.MjModel:
@@ -271,7 +279,8 @@ class Simulator:
             return
         if self._all_cur:
             self._ctrl = torque = current / self._ratio
-            self._over_effort = bool((np.abs(torque) > self.effort).any())
+            # on floats: cheaper than three array operations
+            self._over_effort = any(map(operator.gt, map(abs, torque.tolist()), self._effort))
             return
         self._dq_ref = np.where(self._is_vel, velocity, 0.0)
         self._q_ref = np.where(self._is_pos, position, self._q_ref + self._dq_ref * DT)
@@ -337,11 +346,11 @@ class Simulator:
 
     def base_state(self) -> BaseState:
         d = self.data
-        x, y, yaw = d.qpos[self._bqadr]
-        vxw, vyw, wz = d.qvel[self._badr]
-        c, s = np.cos(yaw), np.sin(yaw)
-        twist = np.array([c * vxw + s * vyw, -s * vxw + c * vyw, wz])
-        return BaseState(float(d.time), np.array([x, y, yaw]), twist)
+        x, y, yaw = d.qpos[self._bqsl].tolist()  # floats: cheaper than numpy scalars
+        vxw, vyw, wz = d.qvel[self._bdsl].tolist()
+        c, s = math.cos(yaw), math.sin(yaw)
+        twist = np.array((c * vxw + s * vyw, -s * vxw + c * vyw, wz))
+        return BaseState(float(d.time), np.array((x, y, yaw)), twist)
 
     # ----------------------------------------------------------------- interaction
     def set_wrench(self, force=(0.0, 0.0, 0.0), torque=(0.0, 0.0, 0.0)) -> None:
@@ -373,10 +382,19 @@ class Simulator:
         d = self.data
         point = d.site_xpos[self._ee_site]
         force, torque = self.interaction.wrench(d.time, point)
-        # xfrc_applied acts at the body's centre of mass: move the wrench there
-        lever = point - d.xipos[self._ee_body]
-        d.xfrc_applied[self._ee_body, :3] = force
-        d.xfrc_applied[self._ee_body, 3:] = torque + np.cross(lever, force)
+        # xfrc_applied acts at the body's centre of mass: move the wrench there (torque plus
+        # lever x force, on floats: np.cross on 3-vectors costs tens of us)
+        lx, ly, lz = (point - d.xipos[self._ee_body]).tolist()
+        fx, fy, fz = force.tolist()
+        tx, ty, tz = torque.tolist()
+        d.xfrc_applied[self._ee_body] = (
+            fx,
+            fy,
+            fz,
+            tx + ly * fz - lz * fy,
+            ty + lz * fx - lx * fz,
+            tz + lx * fy - ly * fx,
+        )
 
     # ----------------------------------------------------------------- stepping
     def step(self, n: int = 1, pace: bool = True) -> None:
@@ -401,10 +419,10 @@ class Simulator:
 
     def _drive_base(self) -> None:
         d = self.data
-        tw = self._limiter.update(float(d.time))
-        yaw = d.qpos[self._bqadr[2]]
-        c, s = np.cos(yaw), np.sin(yaw)
-        d.ctrl[self.n :] = [c * tw[0] - s * tw[1], s * tw[0] + c * tw[1], tw[2]]
+        vx, vy, wz = self._limiter.update(float(d.time)).tolist()
+        yaw = float(d.qpos[self._bqadr[2]])
+        c, s = math.cos(yaw), math.sin(yaw)
+        d.ctrl[self.n :] = (c * vx - s * vy, s * vx + c * vy, wz)
 
     def _measure(self) -> None:
         """Measured current and the cheap fault tests of the step just taken."""
@@ -412,12 +430,14 @@ class Simulator:
         if k == 0:
             self._noise = self._rng.normal(0.0, self.truth.current_noise, (_NOISE_BLOCK, self.n))
         self._k += 1
-        self.current = self._ratio * self._v_qfrc + self._noise[k]
+        current = self._ratio * self._v_qfrc
+        current += self._noise[k]
+        self.current = current  # a new array each step: states keep theirs
         dq = self._v_dq
         if (
             self.data.nl  # a joint-limit constraint is active
             or self._over_effort
-            or float(dq @ dq) > self.overspeed**2
+            or np.dot(dq, dq) > self.overspeed * self.overspeed
             or (not self._all_cur and self._following_error_exceeded())
         ):
             self._record_faults()

@@ -78,3 +78,15 @@ def plan_sweeps(plan, speed_scale=None):
         scale = 1.0 if speed_scale is None else speed_scale(k, s)
         out.append((s.joint, s.hold, s.lower, s.upper, s.speed * scale))
     return out
+
+
+def with_noise(rec: Recording, sigma: float, seed: int) -> Recording:
+    """``rec`` with fresh Gaussian current-sensor noise, as the simulator adds it."""
+    noise = sigma * np.random.default_rng(seed).standard_normal(rec.current.shape)
+    data = rec.to_arrays()
+    data["current"] = rec.current + noise
+    return Recording(
+        **{k: data[k] for k in ("t", "q", "dq", "current", "joint", "direction")},
+        model=rec.model,
+        gravity=rec.gravity,
+    )

@@ -20,7 +20,7 @@ from jaxcomp.control import (
     make_impedance_controller,
     make_velocity_controller,
 )
-from jaxcomp.control.impedance import limit_current
+from jaxcomp.control.impedance import friction_current, limit_current
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.mecanum import TwistLimits
 from jaxcomp.robot_params import RobotParams
@@ -112,6 +112,67 @@ def test_feedforward_and_orientation_match_pinocchio(robot, params):
         np.testing.assert_allclose(diag.data, diag_p.data, rtol=0, atol=1e-9)
     with pytest.raises(InputError, match="target_rot"):
         ctrl.check_state(q, dq, target)
+
+
+def test_tracking_gains_match_pinocchio_and_packed_step_matches_step(robot, params):
+    """The motion-torque friction direction with its linear zone, in both implementations,
+    and the loop's packed step against the step."""
+    gains = ImpedanceGains.tracking()
+    ctrl = make_impedance_controller(robot, params, gains)
+    pin_ctrl = ImpedanceControllerPinocchio(robot, params, gains)
+    rng = np.random.default_rng(3)
+    for k in range(50):
+        q, dq, target = _random_state(robot, rng)
+        dq = dq * (0.01 if k % 2 else 1.0)  # inside and beyond the threshold velocity
+        vel, acc, prev = rng.normal(0, 0.1, 3), rng.normal(0, 0.2, 3), rng.normal(0, 3, 6)
+        cur, diag = _step(ctrl, q, dq, target, vel, acc, prev)
+        cur_p, diag_p = pin_ctrl.step(q, dq, target, vel, acc, prev)
+        np.testing.assert_allclose(cur, cur_p, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(diag.data, diag_p.data, rtol=0, atol=1e-9)
+        out = np.asarray(ctrl.packed_step(ctrl.pack(q, dq, prev, target, vel, acc)))
+        assert ctrl.packed_size == 27 and out.shape == (6 + 34,)  # current | diagnostics
+        np.testing.assert_allclose(out[:6], cur, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(out[6:], diag.data, rtol=0, atol=1e-12)
+
+
+def test_friction_direction_at_rest(robot, params):
+    """Eq. (16) at rest: "torque" pushes l along sign(tau) (a gravity-loaded joint along its
+    gravity torque, whatever the spring asks); "motion" along the torque beyond gravity, and
+    continuously through zero with a friction band."""
+    r, l = np.asarray(params.ratio), np.asarray(params.friction)
+    tau = np.array([0.2, 5.0, -3.0, 0.01, -0.02, 0.0])  # N m
+    g = np.array([0.0, 5.5, -2.5, 0.0, 0.0, 0.0])  # N m: joints 1, 2 carry gravity
+    dq = np.zeros(6)
+    paper = friction_current(tau, tau, dq, r, l, 0.3, 0.0, np)
+    np.testing.assert_allclose(paper, current_model.current(tau, dq, r, l, 0.3), atol=1e-15)
+    np.testing.assert_allclose(paper - r * tau, l * np.sign(tau))
+    motion = friction_current(tau, tau - g, dq, r, l, 0.3, 0.0, np)
+    np.testing.assert_allclose(motion - r * tau, l * np.sign(tau - g))  # joints 1, 2 flip
+    band = friction_current(tau, tau - g, dq, r, l, 0.3, 0.05, np)
+    np.testing.assert_allclose(band - r * tau, l * np.clip((tau - g) / 0.05, -1, 1))
+    moving = friction_current(tau, tau - g, np.full(6, 0.5), r, l, 0.3, 0.05, np)
+    np.testing.assert_allclose(moving - r * tau, l)  # beyond t: along the motion only
+    ctrl = make_impedance_controller(robot, params, ImpedanceGains.tracking())
+    q = ctrl.joint.posture  # at the target and the posture: no torque but gravity
+    cur, diag = _step(ctrl, q, dq, np.asarray(robot.site_position(q, SITE)), prev=None)
+    np.testing.assert_allclose(diag.current_raw, r * diag.tau, atol=1e-12)  # no kick at rest
+
+
+def test_gain_presets():
+    assert ImpedanceGains.paper() == ImpedanceGains() == ImpedanceGains.preset("paper")
+    t = ImpedanceGains.tracking()
+    assert t == ImpedanceGains.preset("tracking")
+    assert t.stiffness == (400.0,) * 3 and t.damping == (30.0,) * 3
+    assert t.friction_direction == "motion" and t.friction_threshold == 0.02
+    assert t.friction_band == 0.05 and t.nullspace_damping == 0.3 and not t.feedforward
+    assert ImpedanceGains.tracking(stiffness=200.0).stiffness == (200.0,) * 3
+    assert ImpedanceGains().friction_direction == "torque" and ImpedanceGains().friction_band == 0
+    with pytest.raises(InputError, match="unknown gains preset"):
+        ImpedanceGains.preset("stiff")
+    with pytest.raises(InputError, match="friction_direction"):
+        ImpedanceGains(friction_direction="velocity")
+    with pytest.raises(InputError, match="friction_band"):
+        ImpedanceGains(friction_band=-0.1)
 
 
 def test_at_target_at_rest_current_is_eq16_of_gravity(robot, params, ctrl, identified_gravity):
@@ -297,6 +358,11 @@ def test_velocity_controller_converges_in_kinematic_simulation(robot):
     assert np.all(np.abs(np.asarray(dq)) <= limit + 1e-12)
     with pytest.raises(InputError, match="target_pos"):
         ctrl.check_state(q, [0.0, np.nan, 0.0])
+    x = np.concatenate([q, np.zeros(12), target, np.zeros(6)])  # the loop's packed input
+    out = np.asarray(ctrl.packed_step(x))
+    want_dq, want_diag = ctrl.checked_step(q, target)
+    np.testing.assert_allclose(out[:6], want_dq, atol=1e-12)
+    np.testing.assert_allclose(out[6:], want_diag.data, atol=1e-12)
 
 
 # ----------------------------------------------------------------------------- base follower

@@ -6,7 +6,8 @@ stiff, well-damped gains (K 300 N/m, D 30 N s/m, posture = the start pose): the 
 its target to the 1 mm deadband, so pushes, returns and F/K are measured without the friction
 band that the paper's soft 40 N/m spring leaves (about 2 cm in this simulator). Pushes ramp up
 over 0.1 s (five staggered pushes) as a hand would: a step of 10 N on the end effector spins
-the light wrist past the simulator's 2 rad/s overspeed fault.
+the light wrist past the simulator's 2 rad/s overspeed fault. The same behaviour against the
+full friction, with identified params, is in test_control_behaviour.py.
 """
 
 from __future__ import annotations
@@ -24,7 +25,12 @@ from click.testing import CliRunner
 
 from jaxcomp.cli.control import _target_marker, parse_push
 from jaxcomp.cli.group import cli
-from jaxcomp.control import ImpedanceGains, make_impedance_controller, make_velocity_controller
+from jaxcomp.control import (
+    ImpedanceGains,
+    loop,
+    make_impedance_controller,
+    make_velocity_controller,
+)
 from jaxcomp.control.loop import ArmMount, arm_model, arm_params, run_control
 from jaxcomp.control.timing import CycleTimer
 from jaxcomp.control.trajectory import parse_trajectory
@@ -173,6 +179,7 @@ def test_timing_json(guidance_run):
     assert 0 <= timing["missed_fraction"] <= 1
     assert timing["missed_deadlines"] == round(timing["missed_fraction"] * result.cycles)
     assert timing["speed_x_realtime"] > 0 and timing["sim_time_s"] == pytest.approx(2.8)
+    assert 0 < timing["cpu_s"] and timing["speed_x_realtime_cpu"] > 0
     assert timing["run"]["kind"] == "completed"
     assert timing["run"]["rms_error_m"] == pytest.approx(result.rms_error)
 
@@ -261,17 +268,17 @@ def _inject(monkeypatch, sim: Simulator, how: str, controller):
 
     monkeypatch.setattr(arm, "cycle", cycle)
     if how in ("current_limit", "nan_command"):
-        step = controller.step
+        step = controller.packed_step  # what the loop calls: current (n) | diagnostics
         count = [0]
 
-        def bad_step(*args):
+        def bad_step(x):
             count[0] += 1
-            cur, diag = step(*args)
+            out = step(x)
             if count[0] >= TRIP_AT + 2:  # the setup check and cycle 0 come first
-                cur = cur.at[1].set(20.0 if how == "current_limit" else np.nan)
-            return cur, diag
+                out = out.at[1].set(20.0 if how == "current_limit" else np.nan)
+            return out
 
-        monkeypatch.setattr(controller, "step", bad_step)
+        monkeypatch.setattr(controller, "packed_step", bad_step)
     return calls
 
 
@@ -437,6 +444,36 @@ def test_arm_mount_matches_the_simulator():
         np.testing.assert_allclose(mount.arm_to_world(ee_a, pose), sim.ee_position(), atol=1e-12)
         np.testing.assert_allclose(mount.world_to_arm(sim.ee_position(), pose), ee_a, atol=1e-12)
     assert ArmMount.from_model(ARM).position.tolist() == [0.0, 0.0, 0.0]
+
+
+def test_cycle_frames_match_arm_mount():
+    """The loop's float frame maths against ``ArmMount`` (a tilted mount with a pivot)."""
+    rng = np.random.default_rng(7)
+    rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    rot *= np.linalg.det(rot)  # a rotation
+    mount = ArmMount([0.16, 0.02, 0.11], rot, [0.05, -0.03, 0.0])
+    traj = parse_trajectory("circle:r=0.1,v=0.05").build(np.array([0.5, 0.1, 0.4]))
+    law = SimpleNamespace(target=np.zeros(9))
+    for guidance in (True, False):
+        args = (None, traj, 0.0, None, None, mount, guidance, np.zeros(3), None, True)
+        work = loop._Cycle(law, *args)
+        for _ in range(5):
+            pose, twist, t = rng.uniform(-1, 1, 3), rng.uniform(-0.5, 0.5, 3), rng.uniform(0, 9)
+            tb, tw, c, s, ox, oy = work.targets(t, *pose, *twist, True)
+            sample = traj(t)
+            if guidance:
+                want_b, vel_b, acc_b = sample.pos, sample.vel, sample.acc
+            else:
+                rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+                want_b = mount.world_to_base(sample.pos, pose)
+                vel_b, acc_b = rz.T @ sample.vel, rz.T @ sample.acc
+                w = twist[2]  # minus the base's velocity at the target point
+                vel_b = vel_b - [twist[0] - w * want_b[1], twist[1] + w * want_b[0], 0.0]
+            np.testing.assert_allclose(tb, want_b, atol=1e-12)
+            np.testing.assert_allclose(tw, mount.base_to_world(want_b, pose), atol=1e-12)
+            np.testing.assert_allclose(mount.base_to_world(np.zeros(3), pose), [ox, oy, 0], 1e-12)
+            want = np.r_[mount.base_to_arm(want_b), rot.T @ vel_b, rot.T @ acc_b]
+            np.testing.assert_allclose(law.target, want, atol=1e-12)
 
 
 def test_trajectories():

@@ -13,7 +13,6 @@ from jaxcomp.cli import cli
 from jaxcomp.identify import jax_fit
 from jaxcomp.identify.baseline import fit_baseline
 from jaxcomp.identify.plan import default_plan
-from jaxcomp.recording import Recording
 from jaxcomp.robot_params import RobotParams
 
 PAPER_RATIO = [1.0282, 0.3074, 1.0282, 1.9074, 2.0373, 1.9724]
@@ -46,18 +45,6 @@ def sweeps(robot):
 def synthetic_fit(robot, truth, sweeps):
     rec = synthetic.recording(robot, truth, sweeps, noise=0.05, seed=1)
     return rec, jax_fit.fit(rec)
-
-
-def with_noise(rec: Recording, sigma: float, seed: int) -> Recording:
-    """``rec`` with fresh Gaussian current-sensor noise, as the simulator adds it."""
-    noise = sigma * np.random.default_rng(seed).standard_normal(rec.current.shape)
-    data = rec.to_arrays()
-    data["current"] = rec.current + noise
-    return Recording(
-        **{k: data[k] for k in ("t", "q", "dq", "current", "joint", "direction")},
-        model=rec.model,
-        gravity=rec.gravity,
-    )
 
 
 def test_synthetic_fit_predicts_gravity_current(robot, truth, synthetic_fit):
@@ -152,7 +139,7 @@ def test_a_fit_that_does_not_converge_says_so(synthetic_fit):
 def test_simulator_recording_accuracy_against_truth_and_baseline(robot, sim_calibration):
     """The issue's accuracy must-show on a recording the simulator made."""
     clean, truth = sim_calibration
-    rec = with_noise(clean, 0.05, seed=0)
+    rec = synthetic.with_noise(clean, 0.05, seed=0)
     fitted = jax_fit.fit(rec)
     baseline = fit_baseline(rec)
     poses = synthetic.random_poses(robot, 3000, seed=2)
@@ -168,7 +155,7 @@ def test_spread_over_repetitions_matches_reported_standard_errors(sim_calibratio
     """Noise-only repetitions: the spread of the estimates is within 1.2x the reported std."""
     clean, _ = sim_calibration
     reps = 200
-    fits = jax_fit.fit_each(with_noise(clean, 0.05, seed=100 + k) for k in range(reps))
+    fits = jax_fit.fit_each(synthetic.with_noise(clean, 0.05, seed=100 + k) for k in range(reps))
     for field in ("ratio", "friction", "phase_shift"):
         values = np.array([getattr(f, field) for f in fits])
         reported = np.mean([f.std[field] for f in fits], axis=0)

@@ -129,16 +129,27 @@ def _target_marker(sim):
     "reference in Exp. 2).",
 )
 @click.option(
+    "--gains",
+    "preset",
+    type=click.Choice(["tracking", "paper"]),
+    default="tracking",
+    show_default=True,
+    help="Impedance gains preset. tracking: K_d 400 N/m, D_d 30 N s/m, Eq. (16) with the "
+    "at-rest friction direction of the motion torque tau - g, t 0.02 rad/s, nullspace damping "
+    "0.3 (holds about 1 mm against the arm's full friction); paper: the paper's K_d 40 N/m, "
+    "D_d 3 N s/m, sign(tau), t 0.3 rad/s (with full friction the arm sticks: centimetres).",
+)
+@click.option(
     "--stiffness",
     type=float,
     default=None,
-    help="Cartesian stiffness K_d, N/m, every axis (default the paper's 40).",
+    help="Cartesian stiffness K_d, N/m, every axis (default: the preset's).",
 )
 @click.option(
     "--damping",
     type=float,
     default=None,
-    help="Cartesian damping D_d, N s/m, every axis (default the paper's 3).",
+    help="Cartesian damping D_d, N s/m, every axis (default: the preset's).",
 )
 @click.option("--viewer", is_flag=True, help="Show the MuJoCo viewer (sim, needs a display).")
 @click.option(
@@ -156,6 +167,14 @@ def _target_marker(sim):
     show_default=True,
     help="Directory for recording.npz (1 kHz, plus target/ee/base/command) and timing.json.",
 )
+@click.option(
+    "--rt-priority",
+    type=click.IntRange(0, 99),
+    default=50,
+    show_default=True,
+    help="Real time only: run the loop under SCHED_FIFO at this priority when the OS allows it "
+    "(root or CAP_SYS_NICE; otherwise it runs as usual); 0: never.",
+)
 @click.option("--seed", type=int, default=0, show_default=True, help="Simulator truth and noise.")
 @click.option("--ip", default="192.168.1.10", show_default=True, help="Arm address (kortex).")
 def control(
@@ -167,11 +186,13 @@ def control(
     duration: float | None,
     pushes: tuple[str, ...],
     law: str,
+    preset: str,
     stiffness: float | None,
     damping: float | None,
     viewer: bool,
     realtime: bool | None,
     out_dir: str,
+    rt_priority: int,
     seed: int,
     ip: str,
 ) -> None:
@@ -182,10 +203,10 @@ def control(
     command or Ctrl-C ends the run with the arm in position mode and the base stopped. Prints
     how the run ended, the RMS tracking error (m) and the loop timing.
     """
-    import jax
+    from jaxcomp.control.timing import configure_jax_for_control, realtime_priority
 
-    # run each controller step on the calling thread: no thread hand-off per 1 kHz cycle
-    jax.config.update("jax_cpu_enable_async_dispatch", False)
+    # each controller step on the calling thread, single-threaded kernels: no thread hand-off
+    configure_jax_for_control()
 
     from jaxcomp.control.gains import ImpedanceGains
     from jaxcomp.control.impedance import make_impedance_controller
@@ -199,7 +220,7 @@ def control(
     push_list = [parse_push(p) for p in pushes]
     if duration is not None and not (math.isfinite(duration) and duration > 0):
         raise InputError(f"--duration must be a positive number of s, got {duration}")
-    gains = ImpedanceGains()
+    gains = ImpedanceGains.preset(preset)
     changes = {}
     if stiffness is not None:
         changes["stiffness"] = stiffness
@@ -259,19 +280,20 @@ def control(
                 sim.push(sim.t + start, length, force)
         mount = ArmMount.from_model(robot) if base is not None else ArmMount()
         marker = _target_marker(sim) if sim is not None else None
-        result = run_control(
-            arm,
-            base,
-            controller,
-            mode,
-            spec,
-            duration,
-            out_dir,
-            realtime,
-            mount=mount,
-            model=_model_name(robot),
-            on_cycle=marker,
-        )
+        with realtime_priority(rt_priority if realtime and rt_priority else None):
+            result = run_control(
+                arm,
+                base,
+                controller,
+                mode,
+                spec,
+                duration,
+                out_dir,
+                realtime,
+                mount=mount,
+                model=_model_name(robot),
+                on_cycle=marker,
+            )
     finally:
         if sim is not None:
             sim.close()
