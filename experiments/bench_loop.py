@@ -34,6 +34,7 @@ os.environ.setdefault(
 
 import argparse  # noqa: E402
 import dataclasses  # noqa: E402
+import json  # noqa: E402
 import math  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -106,7 +107,7 @@ def after(t, values, release, threshold) -> float:
 # ----------------------------------------------------------------------------- lock step
 
 
-def lockstep(params, truth, repeats: int) -> None:
+def lockstep(params, truth, repeats: int) -> dict:
     ctrl = make_impedance_controller(ARM, params, ImpedanceGains.tracking())
     ctrl.compile()
     runs = {
@@ -136,9 +137,17 @@ def lockstep(params, truth, repeats: int) -> None:
                         tm["exchange"]["median_us"],
                     )
                 )
+    out = {}
     for name, rows in figures.items():
         v = np.array(rows)
         speed, cpu, compute, exchange = np.median(v, axis=0)
+        out[name] = {
+            "x_realtime": float(speed),
+            "x_realtime_best": float(v[:, 0].max()),
+            "x_realtime_per_cpu_s": float(cpu),
+            "compute_median_us": float(compute),
+            "exchange_median_us": float(exchange),
+        }
         print(
             f"{name:<36}{speed:>12.1f}{v[:, 0].max():>8.1f}{cpu:>11.1f}"
             f"{compute:>12.0f}{exchange:>13.0f}"
@@ -148,6 +157,7 @@ def lockstep(params, truth, repeats: int) -> None:
         "of the loop's thread,\n the speed on a core of its own; compute and exchange: per-cycle "
         "medians, wall clock)"
     )
+    return out
 
 
 # ----------------------------------------------------------------------------- profile
@@ -247,7 +257,7 @@ def platform_baseline(seconds: float, work_us: float, priority: int | None) -> d
     return {"fifo": fifo, "missed": missed, "fraction": missed / n}
 
 
-def realtime(params, truth, seconds: float, priority: int | None, work_us: float) -> None:
+def realtime(params, truth, seconds: float, priority: int | None, work_us: float) -> dict:
     ctrl = make_impedance_controller(ARM, params, ImpedanceGains.tracking())
     ctrl.compile()
     base_line = platform_baseline(min(seconds, 10.0), work_us, priority)
@@ -278,12 +288,22 @@ def realtime(params, truth, seconds: float, priority: int | None, work_us: float
         f"{work_us:g} us of spinning each): missed {base_line['missed']} "
         f"({100 * base_line['fraction']:.3f} %), SCHED_FIFO {'on' if base_line['fifo'] else 'off'}"
     )
+    return {
+        "seconds": seconds,
+        "ended": res.kind,
+        "fifo": bool(fifo),
+        "missed_deadlines": tm["missed_deadlines"],
+        "missed_fraction": tm["missed_fraction"],
+        "period_us": {k: per[k] for k in ("median_us", "p99_us", "max_us")},
+        "compute_us": {k: comp[k] for k in ("median_us", "p99_us", "max_us")},
+        "platform_baseline_missed_fraction": base_line["fraction"],
+    }
 
 
 # ----------------------------------------------------------------------------- behaviour
 
 
-def behaviour(params, truth) -> None:
+def behaviour(params, truth) -> dict:
     presets = {
         "paper": ImpedanceGains.paper(),
         "paper, motion dir.": ImpedanceGains.paper(friction_direction="motion"),
@@ -318,6 +338,7 @@ def behaviour(params, truth) -> None:
         "K_d, D_d;\n 'paper, motion dir.': the paper's gains with friction_direction='motion'. "
         "A run that ended early is measured up to its end.)"
     )
+    return rows
 
 
 def half_circle(ctrl, truth, tmp) -> dict:
@@ -422,20 +443,26 @@ def main() -> None:
     parser.add_argument("--behaviour", action="store_true", help="issue 5's behaviour table")
     parser.add_argument("--core", type=int, help="pin the process to this CPU core")
     parser.add_argument("--calibration", help="a `jaxcomp calibrate` folder (params, truth)")
+    parser.add_argument("--json", help="also write the figures to this JSON file")
     args = parser.parse_args()
     configure_jax_for_control()
     if args.core is not None:
         os.sched_setaffinity(0, {args.core})
     params, truth = calibrated(args.calibration)
     params = arm_params(params, ARM)
+    result: dict = {"load": load()}
     if not args.no_lockstep:
-        lockstep(params, truth, args.repeats)
+        result["lockstep"] = lockstep(params, truth, args.repeats)
     if args.profile:
         profile(params, truth)
     if args.realtime > 0:
-        realtime(params, truth, args.realtime, args.rt_priority or None, args.baseline_work)
+        result["realtime"] = realtime(
+            params, truth, args.realtime, args.rt_priority or None, args.baseline_work
+        )
     if args.behaviour:
-        behaviour(params, truth)
+        result["behaviour"] = behaviour(params, truth)
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2))
 
 
 if __name__ == "__main__":

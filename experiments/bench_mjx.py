@@ -15,7 +15,9 @@ wall second of a second, compiled run). Small numbers run on the CPU:
 from __future__ import annotations
 
 import argparse
+import json
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -60,6 +62,7 @@ def main() -> None:
     ap.add_argument(
         "--no-keep", action="store_true", help="stream the recording instead of keeping it"
     )
+    ap.add_argument("--json", help="also write the figures to this JSON file")
     args = ap.parse_args()
 
     robot = load_robot("gen3_lite")
@@ -104,6 +107,19 @@ def main() -> None:
         f"{steps / stepping:.3e} world-steps/s stepping, {steps / wall:.3e} world-steps/s "
         f"in all ({steps} world-steps)"
     )
+    if args.json:
+        figures = {
+            "backend": jax.default_backend(),
+            "devices": 1 if mesh is None else mesh.size,
+            "dtype": args.dtype,
+            "worlds": w,
+            "plan_steps": len(q_ref),
+            "every": args.every,
+            "compile_s": sim.compile_seconds,
+            "world_steps_per_s": steps / stepping,
+            "world_steps_per_s_in_all": steps / wall,
+        }
+        Path(args.json).write_text(json.dumps(figures, indent=2))
 
 
 if __name__ == "__main__":

@@ -6,12 +6,14 @@ every state) and the bare physics step. Each workload runs ``repeats`` times, in
 prints the median and the best run, in robot time per wall-clock second and per CPU second of
 the process (the speed on a core of its own: on a machine other jobs share, the wall-clock
 figure also counts the time the others had the core).
-Usage: ``python experiments/bench_sim.py [seconds] [repeats]``.
+Usage: ``python experiments/bench_sim.py [--seconds 10] [--repeats 3] [--json FILE]``.
 """
 
+import argparse
+import json
 import os
-import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -58,7 +60,7 @@ def sweep(sim: Simulator, seconds: float) -> float:
     return sim.t - t_sim
 
 
-def main(seconds: float = 10.0, repeats: int = 3) -> None:
+def main(seconds: float = 10.0, repeats: int = 3) -> dict:
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})  # one core
     steps = int(seconds / 0.001)
@@ -86,10 +88,26 @@ def main(seconds: float = 10.0, repeats: int = 3) -> None:
         print(f"{name:<42}{wall:>8.1f}{v[:, 0].max():>8.1f}{cpu:>11.1f}")
     ok = min(np.median(np.array(rows[n])[:, 0]) for n in names[1:]) >= 20.0
     print(f"target >= 20 x real time on one core (median): {'met' if ok else 'NOT met'}")
+    return {
+        "load": load,
+        "x_realtime": {
+            name: {
+                "median": float(np.median(np.array(v)[:, 0])),
+                "best": float(np.array(v)[:, 0].max()),
+                "per_cpu_s": float(np.median(np.array(v)[:, 1])),
+            }
+            for name, v in rows.items()
+        },
+        "target_met": bool(ok),
+    }
 
 
 if __name__ == "__main__":
-    main(
-        float(sys.argv[1]) if len(sys.argv) > 1 else 10.0,
-        int(sys.argv[2]) if len(sys.argv) > 2 else 3,
-    )
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=10.0, help="robot seconds per run")
+    parser.add_argument("--repeats", type=int, default=3, help="runs of each workload")
+    parser.add_argument("--json", help="also write the figures to this JSON file")
+    args = parser.parse_args()
+    figures = main(args.seconds, args.repeats)
+    if args.json:
+        Path(args.json).write_text(json.dumps(figures, indent=2))
