@@ -25,6 +25,18 @@ measured on the Gen3 Lite in 4 worlds of drawn truths over 4.9 s of +-20-30 deg 
 ``AGREEMENT`` holds the tolerances the tests assert. For that, the step integrates as MuJoCo C
 does when an effort limit clamps the servo (see ``_implicitfast_step``), not as ``mjx.step``.
 
+``run_closed_loop`` drives the worlds in CURRENT mode instead, closed loop at 1 kHz: a policy
+(a pure JAX function of per-world parameters and state, vmapped here, knowing nothing of the
+simulator) maps each measured sample (t, q, dq, current, a row of a shared reference) to motor
+currents; the torque is current / true ratio (effort-clamped), pushes act on the end effector
+(``PushSchedule``), and the faults of the CPU Simulator and the ``Arm`` (joint limit, effort,
+overspeed, refused command) or the policy's own stop put a world in POSITION mode, holding.
+The same chunked scan and sharding as ``run``; only the final policy state need leave the
+device. Agreement with ``control.loop.run_control`` in lock step on the CPU Simulator (same
+truth and impedance controller, no noise, 1.5 s of tracking with a push and an effort fault):
+max |q| 7.6e-10 rad, |dq| 5.7e-9 rad/s, |current| 3.9e-7 A, tracking RMS to 1e-11 m
+(``CLOSED_LOOP_AGREEMENT``).
+
 Units: rad, rad/s, A, N m, kg, m, s; gravity and COM offsets as in ``BatchTruth``.
 """
 
@@ -47,7 +59,7 @@ from mujoco import mjx
 
 from jaxcomp import dynamics
 from jaxcomp.errors import InputError, ModelError
-from jaxcomp.hardware.interface import DT, trapezoid, trapezoid_duration
+from jaxcomp.hardware.interface import DT, ArmLimits, trapezoid, trapezoid_duration
 from jaxcomp.hardware.truth import DEFAULT_CURRENT_NOISE, TrueRobot
 from jaxcomp.params import InertialParams
 from jaxcomp.robot import Robot, load_robot
@@ -57,6 +69,10 @@ from jaxcomp.robot_params import BASE_JOINTS, RobotParams, arm_joint_indices
 #: max |q| rad, |dq| rad/s, |current| A differences over a recorded plan (measured: 7.6e-9,
 #: 3.1e-7, 1.4e-6).
 AGREEMENT = {"q": 2e-8, "dq": 1e-6, "current": 5e-6}
+
+#: The same for ``run_closed_loop`` against the CPU Simulator + ``run_control`` (measured over
+#: 1.5 s: 7.6e-10 rad, 5.7e-9 rad/s, 3.9e-7 A, command 3.9e-7 A, tracking RMS 4.5e-11 m).
+CLOSED_LOOP_AGREEMENT = {"q": 1e-8, "dq": 1e-7, "current": 5e-6, "rms": 1e-9}
 
 SETTLE_STEPS = 500  # the CPU Simulator's settling at the initial pose before t = 0
 PAYLOAD_BODY = "jaxcomp_payload"
@@ -320,13 +336,20 @@ def build_model(robot: Robot, payload: bool = False) -> mujoco.MjModel:
     return model
 
 
+def _ee_site_name(robot: Robot) -> str:
+    """The end-effector site's name (custom text ``jaxcomp_end_effector``, else
+    "end_effector"), checked to exist."""
+    name = robot.custom_text("jaxcomp_end_effector") or "end_effector"
+    if mujoco.mj_name2id(robot.model, mujoco.mjtObj.mjOBJ_SITE, name) < 0:
+        raise ModelError(f"the model has no end-effector site {name!r}")
+    return name
+
+
 def _ee_body_and_point(robot: Robot) -> tuple[str, np.ndarray]:
     """Name of the end-effector site's body and the site's position in it, m."""
-    name = robot.custom_text("jaxcomp_end_effector") or "end_effector"
+    name = _ee_site_name(robot)
     m = robot.model
     s = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, name)
-    if s < 0:
-        raise ModelError(f"the model has no end-effector site {name!r}")
     b = int(m.site_bodyid[s])
     return mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b), m.site_pos[s].copy()
 
@@ -438,6 +461,121 @@ class MjxRecording(NamedTuple):
     every: int
 
 
+# ----------------------------------------------------------------------------- closed loop
+#: Bits of ``ClosedLoopResult.fault_code``: what put a world in POSITION mode (as the CPU
+#: Simulator and the Arm interface would): a joint at its limit, a current whose torque is
+#: beyond the effort limit, a joint faster than ``overspeed``, a command refused before it is
+#: sent (NaN/inf or beyond the arm's current limit), the policy asking to stop (a watchdog).
+FAULT_LIMIT, FAULT_EFFORT, FAULT_OVERSPEED, FAULT_REFUSED, FAULT_STOPPED = 1, 2, 4, 8, 16
+FAULT_NAMES = {
+    FAULT_LIMIT: "joint limit",
+    FAULT_EFFORT: "effort limit",
+    FAULT_OVERSPEED: "overspeed",
+    FAULT_REFUSED: "command refused",
+    FAULT_STOPPED: "stopped by the policy",
+}
+
+
+def fault_names(code: int) -> list[str]:
+    """The readable names of the bits set in a ``fault_code``."""
+    return [name for bit, name in FAULT_NAMES.items() if int(code) & bit]
+
+
+class Observation(NamedTuple):
+    """What a closed-loop policy sees of one world at time t (one 1 kHz sample).
+
+    Attributes:
+        t: () s since the start of the closed loop (sample k is at k DT).
+        q: (n,) rad; dq: (n,) rad/s; current: (n,) A, measured (r tau_applied + noise).
+        reference: (m,) row k of the run's shared ``reference`` (e.g. a target trajectory).
+    """
+
+    t: jax.Array
+    q: jax.Array
+    dq: jax.Array
+    current: jax.Array
+    reference: jax.Array
+
+
+#: A closed-loop policy, per world: (params, state, Observation) -> (command (n,) A, new state,
+#: stop ()); pure JAX, vmapped over worlds by the simulator.
+Policy = Callable[[Any, Any, Observation], tuple[jax.Array, Any, jax.Array]]
+
+
+class PushSchedule(NamedTuple):
+    """Forces on each world's end effector (``hardware.interaction.Push``, force only).
+
+    Push p of world w acts with ``force[w, p]`` (3,) N, world frame, at the end-effector
+    site while ``start[w, p] <= t < start[w, p] + duration[w, p]`` (s since the start of the
+    closed loop); active pushes add up.
+    """
+
+    start: np.ndarray  # (W, P) s
+    duration: np.ndarray  # (W, P) s
+    force: np.ndarray  # (W, P, 3) N
+
+    @classmethod
+    def from_pushes(cls, pushes: Sequence[Sequence[Any]]) -> PushSchedule:
+        """One list of ``Push`` per world (padded with zero forces to the longest list)."""
+        if not pushes:
+            raise InputError("pushes is empty: give one list of Push per world")
+        width = max(1, max(len(p) for p in pushes))
+        start, dur = np.zeros((len(pushes), width)), np.ones((len(pushes), width))
+        force = np.zeros((len(pushes), width, 3))
+        for w, world in enumerate(pushes):
+            for k, push in enumerate(world):
+                if np.any(getattr(push, "torque", np.zeros(3))):
+                    raise InputError("the MJX simulator applies push forces only (torque = 0)")
+                start[w, k], dur[w, k], force[w, k] = push.start, push.duration, push.force
+        return cls(start, dur, force)
+
+    def checked(self, worlds: int) -> PushSchedule:
+        """Float arrays of the right shapes, finite, start >= 0, duration > 0 (InputError)."""
+        start, dur, force = (np.asarray(a, dtype=float) for a in self)
+        if start.ndim != 2 or start.shape[0] != worlds or dur.shape != start.shape:
+            raise InputError(
+                f"push start and duration must have shape ({worlds}, P), got {start.shape} "
+                f"and {dur.shape}"
+            )
+        if force.shape != start.shape + (3,):
+            raise InputError(f"push force must have shape {start.shape + (3,)}, got {force.shape}")
+        if not (np.isfinite(start).all() and np.isfinite(dur).all() and np.isfinite(force).all()):
+            raise InputError("pushes must be finite")
+        if (start < 0).any() or (dur <= 0).any():
+            raise InputError("pushes need start >= 0 s and duration > 0 s")
+        return PushSchedule(start, dur, force)
+
+
+class ClosedLoopResult(NamedTuple):
+    """What ``MjxSimulator.run_closed_loop`` returns (host arrays; R recorded samples).
+
+    Attributes:
+        t: (R,) s, time of each recorded sample (step i's state, at (i + 1) DT).
+        q: (W, R, n) rad; dq: (W, R, n) rad/s; current: (W, R, n) A measured, the state after
+            steps 0, every, ...; command: (W, R, n) A, the policy's command applied in those
+            steps (its last one once the world is in POSITION mode). None when not recorded.
+        state: the policy state of every world at the end (pytree of (W, ...) arrays; frozen
+            after the last sample whose command was sent).
+        q_start: (W, n) rad, each world's settled pose at t = 0.
+        fault_step: (W,) the sample at which each world went to POSITION mode after a fault,
+            a refused command or a stop (t = fault_step DT; it holds from step fault_step on),
+            -1 if none.
+        fault_code: (W,) bits ``FAULT_*`` of that event (0 if none).
+        every: the recording decimation (0: nothing recorded).
+    """
+
+    t: np.ndarray
+    q: np.ndarray | None
+    dq: np.ndarray | None
+    current: np.ndarray | None
+    command: np.ndarray | None
+    state: Any
+    q_start: np.ndarray
+    fault_step: np.ndarray
+    fault_code: np.ndarray
+    every: int
+
+
 # ----------------------------------------------------------------------------- simulator
 class MjxSimulator:
     """MJX simulation of many true arms in POSITION mode (see the module docstring).
@@ -493,6 +631,13 @@ class MjxSimulator:
         self._payload_id = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, PAYLOAD_BODY)
         self._hard = self.robot.joint_limits[arm_joint_indices(self.robot)]
         self.effort = np.abs(m.jnt_actfrcrange).max(1)
+        # CURRENT mode (run_closed_loop): torque limits (inf where none), the arm's current
+        # limits (A, as ArmLimits), the end-effector site and its body (pushes)
+        self._torque_limit = np.where(m.jnt_actfrclimited.astype(bool), self.effort, np.inf)
+        self.current_limit = ArmLimits.from_robot(self.robot, arm_joint_indices(self.robot)).current
+        site = _ee_site_name(self.robot)
+        self._ee_site = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, site)
+        self._ee_body = int(m.site_bodyid[self._ee_site])
         with self._precision():  # float32: the model's arrays and every traced literal
             self._mx = mjx.put_model(m)
             self._d0 = mjx.make_data(self._mx)
@@ -663,6 +808,148 @@ class MjxSimulator:
             every,
         )
 
+    def run_closed_loop(
+        self,
+        truth: BatchTruth,
+        policy: Policy,
+        params: Any,
+        state: Any,
+        steps: int,
+        *,
+        reference: Any = None,
+        pushes: PushSchedule | None = None,
+        initial_pose: Any = None,
+        settle_steps: int = SETTLE_STEPS,
+        seed: int = 0,
+        every: int = 0,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> ClosedLoopResult:
+        """Drive every world in CURRENT mode with ``policy`` for ``steps`` steps of 1 ms.
+
+        Each world settles at ``initial_pose`` under the position servo for ``settle_steps``
+        (>= 1) steps, as in ``run``; from t = 0 the policy maps each sample k (``Observation``
+        at t = k DT, k = 0 .. steps) to the motor currents (n,) A of step k (the last sample's
+        are not applied): torque = current / true ratio, clamped at the effort limit, as the
+        CPU Simulator's CURRENT mode (the sample before a step, the command after it:
+        ``control.loop.run_control`` in lock step, with ``steps`` cycles). The measured
+        current is ratio x applied torque + noise; world w's noise at sample k comes from
+        ``fold_in(fold_in(PRNGKey(seed), w), k)``.
+
+        ``policy(params_w, state_w, obs) -> (current (n,) A, new state_w, stop ())`` is pure
+        JAX, vmapped over worlds here; ``params`` and ``state`` are pytrees of (W, ...) arrays,
+        or ``state`` is a function ``init(params_w, obs_0) -> state_w`` applied to sample 0.
+        ``reference`` (steps + 1, m), shared by the worlds, gives row k to the policy with
+        sample k (None: an empty row). ``pushes`` act on the end effectors (world frame).
+
+        A world goes to POSITION mode, holding its measured position, for the rest of the run
+        (``fault_step``, ``fault_code``) when, as on the CPU Simulator and the ``Arm``, a joint
+        reaches its limit, a torque exceeds the effort limit or a joint ``overspeed`` (the
+        sample after the step shows the fault), or at a sample whose command is refused (NaN/inf
+        or beyond ``current_limit`` A, never sent) or where the policy returns ``stop``; the
+        policy state stays as after the last sample whose command was sent (``run_control``:
+        a tripped sample is not counted). Records every ``every``-th step (0: only the final
+        state); ``progress(steps_done, steps_total)`` after each chunk.
+        """
+        steps, settle_steps, every = int(steps), int(settle_steps), int(every)
+        if steps < 1:
+            raise InputError(f"steps must be >= 1, got {steps}")
+        if settle_steps < 1:
+            raise InputError("settle_steps must be >= 1: sample 0 is the settled state")
+        if every < 0:
+            raise InputError(f"every must be >= 0 (0: no recording), got {every}")
+        if not callable(policy):
+            raise InputError("policy must be a function (params, state, Observation) -> ...")
+        w, n = truth.worlds, self.n
+        ref = np.zeros((steps + 1, 0)) if reference is None else np.asarray(reference, float)
+        if ref.ndim != 2 or ref.shape[0] != steps + 1 or not np.isfinite(ref).all():
+            raise InputError(
+                f"reference must be a finite (steps + 1 = {steps + 1}, m) array, got shape "
+                f"{ref.shape}"
+            )
+        if pushes is None:
+            pushes = PushSchedule(np.zeros((w, 1)), np.ones((w, 1)), np.zeros((w, 1, 3)))
+        pushes = pushes.checked(w)
+        init = state if callable(state) else None
+        params = _per_world(params, w, "params")
+        t_begin, compile_before = time.perf_counter(), self.compile_seconds
+        q0 = self._initial_pose(initial_pose, w)
+        fields = self.world_fields(truth)
+        fields.update(
+            push_start=pushes.start.astype(self.dtype),
+            push_duration=pushes.duration.astype(self.dtype),
+            push_force=pushes.force.astype(self.dtype),
+            key=np.asarray(
+                jax.vmap(jax.random.fold_in, (None, 0))(jax.random.PRNGKey(seed), jnp.arange(w))
+            ),
+        )
+        # pad the worlds to a multiple of the mesh size (copies of the last world, dropped)
+        shards = 1 if self.mesh is None else self.mesh.size
+        wp = -(-w // shards) * shards
+        pad = np.minimum(np.arange(wp), w - 1)
+        padded = lambda tree: jax.tree_util.tree_map(lambda a: a[pad], tree)  # noqa: E731
+        fields, params, q0 = padded(fields), padded(params), q0[pad].astype(self.dtype)
+        zeros = np.zeros((wp, n), self.dtype)
+        if init is None:
+            pstate = padded(_per_world(state, w, "state"))
+        else:  # zeros of init's structure until sample 0 replaces them
+            obs = Observation(np.zeros(wp), zeros, zeros, zeros, np.zeros((wp, ref.shape[1])))
+            with self._precision():
+                shapes = jax.eval_shape(jax.vmap(init), params, obs)
+            pstate = jax.tree_util.tree_map(lambda sd: np.zeros(sd.shape, sd.dtype), shapes)
+        if every:
+            chunk = self._chunk_steps(wp, every, max(steps, settle_steps))
+        else:
+            chunk = self.chunk_steps or (100 if self.backend == "cpu" else 1000)
+            chunk = min(int(chunk), max(steps, settle_steps))
+        put, put_shared = self._placement()
+        fields, params = put(fields), put(params)
+        no_fault = np.full(wp, -1, np.int32)
+        carry = (q0, zeros, zeros, np.zeros((wp, 3), self.dtype), zeros, pstate, q0)
+        carry = put(carry + (no_fault, np.zeros(wp, np.int32)))
+        key = ("closed", policy, init, chunk, every, _signature(fields, params, carry, ref))
+        if key not in self._compiled:
+            self._compiled[key] = self._build_closed_loop(policy, init, every)
+        fn = self._compiled[key]
+        t_prepared = time.perf_counter()
+
+        def rows(first: int) -> jax.Array:  # reference rows of samples first .. first+chunk-1
+            return put_shared(ref[np.clip(np.arange(first, first + chunk), 0, steps)])
+
+        for s in range(-settle_steps, 0, chunk):
+            carry, _, _ = fn(
+                fields, params, carry, rows(s + 1), np.int32(s), np.int32(min(chunk, -s))
+            )
+        q_start = np.asarray(carry[0])[:w].astype(float)
+        t_settled, compile_settled = time.perf_counter(), self.compile_seconds
+        n_rec = -(-steps // every) if every else 0
+        names = ("q", "dq", "current", "command")
+        out = {k: np.zeros((w, n_rec, n), self.dtype) for k in names} if every else {}
+        pending: tuple | None = None
+        for s in range(0, steps, chunk):
+            k = min(chunk, steps - s)
+            carry, rec, faulted = fn(fields, params, carry, rows(s + 1), np.int32(s), np.int32(k))
+            if pending is not None:  # host work overlaps the chunk just dispatched
+                self._collect(pending, w, every, out, progress, steps)
+            pending = (s, k, rec, faulted)
+        if pending is not None:
+            self._collect(pending, w, every, out, progress, steps)
+        final = jax.tree_util.tree_map(lambda a: np.asarray(a)[:w], carry)
+        t_end = time.perf_counter()
+        self.last_timing = {
+            "prepare": t_prepared - t_begin,
+            "settle": t_settled - t_prepared - (compile_settled - compile_before),
+            "plan": t_end - t_settled - (self.compile_seconds - compile_settled),
+        }
+        return ClosedLoopResult(
+            (np.arange(n_rec) * every + 1) * DT if every else np.zeros(0),
+            *(out.get(k) for k in names),
+            state=final[5],
+            q_start=q_start,
+            fault_step=final[7].astype(int),
+            fault_code=final[8].astype(int),
+            every=every,
+        )
+
     # ------------------------------------------------------------------ internals
     def _initial_pose(self, pose: Any, w: int) -> np.ndarray:
         if pose is None:
@@ -712,6 +999,103 @@ class MjxSimulator:
         if progress is not None:
             progress(s + k, t_total)
 
+    def _collect(self, pending, w, every, out, progress, t_total) -> None:
+        """Copy a closed-loop chunk's samples to the host and report progress."""
+        s, k, rec, faulted = pending
+        np.asarray(faulted)  # waits for the chunk
+        if out:
+            nr, first = -(-k // every), s // every
+            for name, a in zip(out, rec, strict=True):
+                out[name][:, first : first + nr] = np.asarray(a)[:w, :nr]
+        if progress is not None:
+            progress(s + k, t_total)
+
+    def _build_closed_loop(self, policy: Policy, init: Callable | None, every: int) -> Callable:
+        """The jitted chunk function of ``run_closed_loop``: (fields, params, carry, reference
+        rows (chunk, m), first step, valid steps) -> (carry, recorded samples or None, number
+        of worlds in fault). Carry per world: qpos, qvel, qacc_warmstart, lever of the push
+        (site - body COM, m, from the previous step's kinematics, as the CPU Simulator uses
+        it), command, policy state, held position, fault step, fault code."""
+        mx, d0, dtype, n = self._mx, self._d0, self.dtype, self.n
+        lo = jnp.asarray(self._hard[:, 0], dtype)
+        hi = jnp.asarray(self._hard[:, 1], dtype)
+        torque_limit = jnp.asarray(self._torque_limit, dtype)
+        current_limit = jnp.asarray(self.current_limit, dtype)
+        over, site, body, nbody = self.overspeed, self._ee_site, self._ee_body, self.model.nbody
+        step_fn = _implicitfast_step(self.model, dtype)
+
+        def select(cond, new, old):
+            return jax.tree_util.tree_map(lambda a, b: jnp.where(cond, a, b), new, old)
+
+        def world(f, p, carry, k, ref, valid):
+            qpos, qvel, qacc, lever, cmd, state, hold, fault_step, code = carry
+            run = (k >= 0) & (fault_step < 0)  # CURRENT mode (settling, k < 0: held)
+            torque = cmd / f["ratio"]
+            over_effort = run & jnp.any(jnp.abs(torque) > torque_limit)
+            t0 = k * DT
+            on = (f["push_start"] <= t0) & (t0 < f["push_start"] + f["push_duration"])
+            force = jnp.where(on[:, None], f["push_force"], 0.0).sum(axis=0)
+            wrench = jnp.concatenate([force, jnp.cross(lever, force)])
+            model = {key: f[key] for key in _WORLD_MODEL_FIELDS if key in f}
+            model["actuator_biasprm"] = jnp.where(run, 0.0, f["actuator_biasprm"])
+            d = d0.replace(
+                qpos=qpos,
+                qvel=qvel,
+                qacc_warmstart=qacc,
+                ctrl=jnp.where(run, torque, f["kp"] * hold),
+                xfrc_applied=jnp.zeros((nbody, 6), dtype).at[body].set(wrench),
+            )
+            *physics, fwd = step_fn(mx.tree_replace(model), d)
+            q1, dq1, acc1, tau = (a.astype(dtype) for a in physics)
+            lever1 = (fwd.site_xpos[site] - fwd.xipos[body]).astype(dtype)
+            z = jax.random.normal(jax.random.fold_in(f["key"], jnp.maximum(k + 1, 0)), (n,), dtype)
+            cur1 = f["ratio"] * tau + f["noise"] * z
+            at_limit = jnp.any((q1 <= lo) | (q1 >= hi))
+            fast = jnp.any(jnp.abs(dq1) > over)
+            fault = run & (at_limit | over_effort | fast)
+            # the next command, from the state just measured (sample k + 1)
+            obs = Observation((k + 1) * DT, q1, dq1, cur1, ref)
+            state_in = state if init is None else select(k + 1 == 0, init(p, obs), state)
+            cmd1, state1, stop = policy(p, state_in, obs)
+            cmd1 = cmd1.astype(dtype)
+            live = (k + 1 >= 0) & (fault_step < 0) & ~fault
+            refused = live & ~jnp.all(jnp.abs(cmd1) <= current_limit)  # NaN fails too
+            stop = live & ~refused & jnp.asarray(stop, bool)
+            accept = live & ~refused & ~stop
+            event = fault | refused | stop
+            bits = (
+                FAULT_LIMIT * (fault & at_limit)
+                + FAULT_EFFORT * (fault & over_effort)
+                + FAULT_OVERSPEED * (fault & fast)
+                + FAULT_REFUSED * refused
+                + FAULT_STOPPED * stop
+            ).astype(jnp.int32)
+            new = (
+                q1,
+                dq1,
+                acc1,
+                lever1,
+                jnp.where(accept, cmd1, cmd),
+                select(accept, state1, state_in),
+                jnp.where(event, q1, hold),
+                jnp.where(event, k + 1, fault_step),
+                jnp.where(event, bits, code),
+            )
+            return select(valid, new, carry), (q1, dq1, cur1, cmd)
+
+        vworld = jax.vmap(world, in_axes=(0, 0, 0, None, None, None))
+
+        def chunk_fn(f, p, carry, refs, start, n_valid):
+            def step(c, i, ref):
+                return vworld(f, p, c, (start + i).astype(jnp.int32), ref, i < n_valid)
+
+            carry, rec = _scan_decimated(step, carry, refs, every)
+            if rec is not None:
+                rec = tuple(jnp.swapaxes(a, 0, 1) for a in rec)
+            return carry, rec, jnp.sum(carry[7] >= 0)
+
+        return self._ahead_of_time(chunk_fn, carry_arg=2)
+
     def _function(self, worlds: int, chunk: int, every: int) -> Callable:
         key = (worlds, chunk, every)
         if key not in self._compiled:
@@ -730,7 +1114,7 @@ class MjxSimulator:
         def world_step(f, qpos, qvel, qacc, q_target):
             m = mx.tree_replace({k: f[k] for k in model_keys if k in f})
             d = d0.replace(qpos=qpos, qvel=qvel, qacc_warmstart=qacc, ctrl=f["kp"] * q_target)
-            out = step_fn(m, d)
+            out = step_fn(m, d)[:4]
             return tuple(a.astype(dtype) for a in out)
 
         vstep = jax.vmap(world_step, in_axes=(0, 0, 0, 0, 0))
@@ -759,34 +1143,20 @@ class MjxSimulator:
             return jax.vmap(one)(f["key"], f["noise"])
 
         def chunk_fn(f, carry, qr, start, n_valid):
-            qr = qr.reshape(groups, every, -1)
+            carry, (q, dq, tau) = _scan_decimated(
+                lambda c, i, qr_i: step(f, c, i, qr_i, start, n_valid), carry, qr, every
+            )
+            times = start + jnp.arange(groups) * every
+            cur = f["ratio"][None] * tau + jax.vmap(lambda t: noise(f, t))(times)
+            return carry, tuple(jnp.swapaxes(a, 0, 1) for a in (q, dq, cur))
 
-            def group(carry, xs):
-                g, qr_g = xs
-                i0 = g * every
-                if every == 1:
-                    carry, (q, dq, tau) = step(f, carry, i0, qr_g[0], start, n_valid)
-                else:  # one step in the graph: the group's first output rides in the carry
+        return self._ahead_of_time(chunk_fn, carry_arg=1)
 
-                    def inner(c, xs2):
-                        state, kept = c
-                        j, qr_j = xs2
-                        state, out = step(f, state, i0 + j, qr_j, start, n_valid)
-                        kept = tuple(
-                            jnp.where(j == 0, o, k) for o, k in zip(out, kept, strict=True)
-                        )
-                        return (state, kept), None
-
-                    empty = tuple(jnp.zeros_like(carry[0]) for _ in range(3))
-                    steps = (jnp.arange(every), qr_g)
-                    (carry, (q, dq, tau)), _ = jax.lax.scan(inner, (carry, empty), steps)
-                cur = f["ratio"] * tau + noise(f, start + i0)
-                return carry, (q, dq, cur)
-
-            carry, rec = jax.lax.scan(group, carry, (jnp.arange(groups), qr))
-            return carry, tuple(jnp.swapaxes(a, 0, 1) for a in rec)
-
-        jitted = jax.jit(chunk_fn, donate_argnums=(1,) if self.backend != "cpu" else ())
+    def _ahead_of_time(self, fn: Callable, carry_arg: int) -> Callable:
+        """``fn`` jitted (argument ``carry_arg``, the carry, donated on accelerators) and
+        compiled ahead of time on its first call's shapes, timed into ``compile_seconds``."""
+        donate = () if self.backend == "cpu" else (carry_arg,)
+        jitted = jax.jit(fn, donate_argnums=donate)
         compiled: list[Callable] = []
 
         def call(*args):
@@ -800,6 +1170,21 @@ class MjxSimulator:
         return call
 
 
+def _per_world(tree: Any, worlds: int, name: str) -> Any:
+    """``tree`` with numpy leaves, each with a leading world axis of ``worlds`` (InputError)."""
+    tree = jax.tree_util.tree_map(np.asarray, tree)
+    for leaf in jax.tree_util.tree_leaves(tree):
+        if leaf.ndim < 1 or leaf.shape[0] != worlds:
+            raise InputError(f"every array of {name} needs a leading axis of {worlds} worlds")
+    return tree
+
+
+def _signature(*trees: Any) -> tuple:
+    """Structure, shapes and dtypes of pytrees (a key of compiled functions)."""
+    leaves, struct = jax.tree_util.tree_flatten(trees)
+    return (str(struct),) + tuple((tuple(a.shape), str(a.dtype)) for a in leaves)
+
+
 _WORLD_MODEL_FIELDS = (
     "body_ipos",
     "body_mass",
@@ -810,9 +1195,46 @@ _WORLD_MODEL_FIELDS = (
 )
 
 
+def _scan_decimated(step: Callable, carry: Any, xs: Any, every: int) -> tuple[Any, Any]:
+    """``lax.scan`` of ``step(carry, i, x_i) -> (carry, out)`` over the leading axis of ``xs``
+    (a multiple of ``every``), keeping the outputs of steps 0, every, 2 every, ... stacked
+    (steps // every, ...); ``every`` = 0 keeps none (returns None). With every > 1 the group's
+    first output rides in the carry, so the step appears once in the compiled graph."""
+    length = jax.tree_util.tree_leaves(xs)[0].shape[0]
+    if every == 0:
+        carry, _ = jax.lax.scan(
+            lambda c, ix: (step(c, ix[0], ix[1])[0], None), carry, (jnp.arange(length), xs)
+        )
+        return carry, None
+    groups = length // every
+    xs = jax.tree_util.tree_map(lambda a: a.reshape((groups, every) + a.shape[1:]), xs)
+    if every == 1:
+        first = jax.tree_util.tree_map(lambda a: a[:, 0], xs)
+        return jax.lax.scan(lambda c, ix: step(c, ix[0], ix[1]), carry, (jnp.arange(groups), first))
+    x0 = jax.tree_util.tree_map(lambda a: a[0, 0], xs)
+    shapes = jax.eval_shape(lambda c, x: step(c, 0, x)[1], carry, x0)
+
+    def group(c, gx):
+        g, xg = gx
+
+        def inner(cc, jx):
+            state, kept = cc
+            j, x = jx
+            state, out = step(state, g * every + j, x)
+            kept = jax.tree_util.tree_map(lambda o, k: jnp.where(j == 0, o, k), out, kept)
+            return (state, kept), None
+
+        empty = jax.tree_util.tree_map(lambda sd: jnp.zeros(sd.shape, sd.dtype), shapes)
+        (c, kept), _ = jax.lax.scan(inner, (c, empty), (jnp.arange(every), xg))
+        return c, kept
+
+    return jax.lax.scan(group, carry, (jnp.arange(groups), xs))
+
+
 def _implicitfast_step(model: mujoco.MjModel, dtype: Any) -> Callable:
     """One ``mj_step`` of MuJoCo C's implicitfast integrator for hinge/slide joints driven
-    by joint-transmission actuators: (m, d) -> (qpos, qvel, qacc_warmstart, qfrc_actuator).
+    by joint-transmission actuators: (m, d) -> (qpos, qvel, qacc_warmstart, qfrc_actuator,
+    d_forward), the last the data after ``mjx.forward`` at the step's start (kinematics).
 
     ``mjx.step`` keeps a servo's velocity derivative (-kv) in the implicit matrix even when its
     joint torque is clamped at the effort limit (``jnt_actfrcrange``); MuJoCo C (4.0) leaves it
@@ -843,6 +1265,6 @@ def _implicitfast_step(model: mujoco.MjModel, dtype: Any) -> Callable:
         factor = jax.scipy.linalg.cho_factor(m_hat)
         qacc = jax.scipy.linalg.cho_solve(factor, d.qfrc_smooth + d.qfrc_constraint)
         qvel = d.qvel + dt * qacc
-        return d.qpos + dt * qvel, qvel, d.qacc, d.qfrc_actuator
+        return d.qpos + dt * qvel, qvel, d.qacc, d.qfrc_actuator, d
 
     return step

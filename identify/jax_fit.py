@@ -30,7 +30,7 @@ identifiability.
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from functools import partial
 from typing import NamedTuple
@@ -38,6 +38,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
 from jaxcomp import dynamics
@@ -594,3 +595,122 @@ def fit_each(
     if failed:
         raise FitError(f"the fit of recording(s) {failed} did not converge; nothing was written")
     return out
+
+
+class BatchFit(NamedTuple):
+    """Result of ``fit_batch`` (host arrays, leading axis W = recordings).
+
+    Attributes:
+        solution: the ``Solution`` of every recording (ratio (W, n) A/(N m), friction (W, n)
+            A, viscous (W, n) A s/rad, com (W, K) m, cov (W, P, P), ...).
+        coef: (W, S, 1 + K, 3) torque coefficients of each sweep (see ``phase_shift``).
+        std: (W, P) standard errors of [ratio, friction, viscous, com], sqrt(diag cov).
+        compile_seconds: s spent compiling (0 when the batch shape was compiled before).
+        seconds: s of the fits proper (compilation excluded, device sync included).
+    """
+
+    solution: Solution
+    coef: np.ndarray
+    std: np.ndarray
+    compile_seconds: float
+    seconds: float
+
+
+_COMPILED: dict[tuple, Callable] = {}  # (model, batch, sweeps, mesh) -> compiled fit
+
+
+@partial(jax.jit, static_argnums=0)
+def _fit_moments(model: FitModel, m: SweepMoments) -> tuple[Solution, jax.Array]:
+    """Stacked moments (leading batch axis) -> (Solution, coef) of every recording."""
+    st, coef = jax.vmap(_sweep_stats.__wrapped__, in_axes=(None, 0))(model, m)
+    return jax.vmap(solve.__wrapped__, in_axes=(None, 0))(_key(model), st), coef
+
+
+def fit_batch(
+    model: FitModel,
+    moments: SweepMoments,
+    *,
+    batch: int | None = None,
+    mesh: Mesh | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> BatchFit:
+    """Fit W recordings each on its own from their stacked sweep moments, on the default
+    backend (a GPU when present), ``batch`` at a time in one vmapped computation.
+
+    ``moments``: a ``SweepMoments`` with a leading axis W on every field (joint (W, S), hold
+    (W, S, n), moments (W, S, 6, 6), count (W, S), gravity (W, 3), payload_mass (W,),
+    payload_com (W, 3)), e.g. ``identify.moments.sweep_moments_batch``; a sweep of zero moments
+    adds nothing. ``mesh``: a ``jax.sharding.Mesh`` with the single axis "batch" to shard each
+    batch over (its devices); the batch is rounded up to a multiple of the mesh size and the
+    last batch padded with copies of the last recording (dropped). The results are those of
+    ``solve`` per recording; non-converged fits are reported in ``solution.converged``, not
+    raised. ``progress(k)`` after each batch of k recordings.
+    """
+    w = int(moments.moments.shape[0])
+    if w < 1 or moments.moments.ndim != 4:
+        raise InputError("moments must be stacked: moments (W, S, 6, 6) with W >= 1")
+    shards = 1 if mesh is None else mesh.size
+    b = w if batch is None else max(1, min(int(batch), w))
+    b = -(-b // shards) * shards
+    size = _bucket(moments.moments.shape[1])
+    extra = size - moments.moments.shape[1]
+
+    def pad_sweeps(a: np.ndarray) -> np.ndarray:
+        a = np.asarray(a)
+        return np.pad(a, [(0, 0), (0, extra)] + [(0, 0)] * (a.ndim - 2))
+
+    padded = moments._replace(
+        **{k: pad_sweeps(getattr(moments, k)) for k in ("joint", "hold", "moments", "count")}
+    )
+    padded = padded._replace(
+        payload_mass=np.asarray(padded.payload_mass, float),
+        gravity=np.asarray(padded.gravity, float),
+        payload_com=np.asarray(padded.payload_com, float),
+    )
+    place = (
+        (lambda x: x)
+        if mesh is None
+        else partial(jax.device_put, device=NamedSharding(mesh, PartitionSpec("batch")))
+    )
+    compile_seconds, seconds = 0.0, 0.0
+    sols, coefs = [], []
+    for start in range(0, w, b):
+        idx = np.minimum(np.arange(start, start + b), w - 1)
+        chunk = place(jax.tree.map(lambda a, idx=idx: np.asarray(a)[idx], padded))
+        key = (model, b, size, mesh)  # FitModel hashes by identity
+        t0 = time.perf_counter()
+        if key not in _COMPILED:  # compiled ahead of time, so that its time is known
+            _COMPILED[key] = _fit_moments.lower(model, chunk).compile()
+            compile_seconds += time.perf_counter() - t0
+            t0 = time.perf_counter()
+        sol, coef = jax.block_until_ready(_COMPILED[key](chunk))
+        k = min(b, w - start)
+        sols.append(jax.tree.map(lambda a, k=k: np.asarray(a)[:k], sol))
+        coefs.append(np.asarray(coef)[:k])
+        seconds += time.perf_counter() - t0
+        if progress is not None:
+            progress(k)
+    solution = jax.tree.map(lambda *a: np.concatenate(a), *sols)
+    std = np.sqrt(np.clip(np.diagonal(solution.cov, axis1=-2, axis2=-1), 0.0, None))
+    return BatchFit(solution, np.concatenate(coefs), std, compile_seconds, seconds)
+
+
+#: A friction loss whose standard error exceeds this (A) is not determined (no sweep of its joint).
+_FRICTION_UNKNOWN = 1.0
+
+
+def identified(model: FitModel, excited: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """(..., P) bool: which of [ratio, friction, viscous, com] the data determine in a fit.
+
+    Not determined: the ratio of an unexcited joint (``excited`` (..., n) false: tied to its
+    actuator type's mean), a viscous term held at zero (joint swept at one speed), a friction
+    loss with a standard error beyond 1 A (joint not swept), and any parameter whose standard
+    error ``std`` (..., P) exceeds half its prior width (``prior_dominated`` in the params).
+    """
+    n = model.n
+    std = np.asarray(std, float)
+    ok = std <= 0.5 * _prior_widths(model)
+    ok[..., :n] &= np.asarray(excited, bool)
+    ok[..., n : 2 * n] &= std[..., n : 2 * n] < _FRICTION_UNKNOWN
+    ok[..., 2 * n : 3 * n] &= std[..., 2 * n : 3 * n] > 1e-3 * PRIOR_VISCOUS
+    return ok

@@ -18,12 +18,16 @@ import pytest
 
 from jaxcomp import dynamics
 from jaxcomp.errors import InputError
-from jaxcomp.hardware import DT, ArmCommand, Simulator, TrueRobot
+from jaxcomp.hardware import DT, ArmCommand, Push, Simulator, TrueRobot
 from jaxcomp.hardware.mjx_sim import (
     AGREEMENT,
+    FAULT_EFFORT,
+    FAULT_STOPPED,
     BatchTruth,
     MjxSimulator,
     Move,
+    PushSchedule,
+    fault_names,
     reference_trajectory,
     servo_gains,
     true_inertial_params,
@@ -232,6 +236,61 @@ def test_chunks_stream_the_same_samples(batch):
     assert [first for first, _ in chunks][0] == 0
 
 
+# ----------------------------------------------------------------------------- closed loop
+# (its agreement with the CPU Simulator + control loop: tests/test_study_control.py)
+def _hold_policy(p, s, obs):
+    """A joint PD about the settled pose (per-world gain ``k`` A/rad) that counts its samples
+    and stops at sample ``stop_at``."""
+    cmd = -p["k"] * (obs.q - s["q0"]) - 0.05 * obs.dq
+    return cmd, {"q0": s["q0"], "n": s["n"] + 1}, s["n"] + 1 > p["stop_at"]
+
+
+def test_push_schedule_from_pushes_and_checks():
+    sched = PushSchedule.from_pushes([[Push(0.1, 0.2, np.array([1.0, 2.0, 3.0]))], []])
+    assert sched.force.shape == (2, 1, 3) and sched.start[0, 0] == 0.1
+    assert not sched.force[1].any() and sched.duration[1, 0] > 0  # padding: no force
+    with pytest.raises(InputError, match="forces only"):
+        PushSchedule.from_pushes([[Push(0.0, 1.0, np.ones(3), np.ones(3))]])
+    with pytest.raises(InputError, match=r"shape \(3, P\)"):
+        sched.checked(3)
+    bad = sched._replace(duration=np.array([[0.0], [1.0]]))
+    with pytest.raises(InputError, match="duration > 0"):
+        bad.checked(2)
+    assert fault_names(FAULT_EFFORT | FAULT_STOPPED) == ["effort limit", "stopped by the policy"]
+
+
+def test_closed_loop_refuses_bad_input():
+    sim = MjxSimulator("gen3_lite")
+    truth = BatchTruth.from_truths(sim.robot, [_cpu_truth()] * 2)
+    params = {"k": np.ones(2), "stop_at": np.full(2, 10)}
+    state = {"q0": np.zeros((2, 6)), "n": np.zeros(2, int)}
+
+    def run(**kw):
+        args = dict(truth=truth, policy=_hold_policy, params=params, state=state, steps=10)
+        args.update(kw)
+        return sim.run_closed_loop(**args)
+
+    with pytest.raises(InputError, match="steps must be >= 1"):
+        run(steps=0)
+    with pytest.raises(InputError, match="settle_steps must be >= 1"):
+        run(settle_steps=0)
+    with pytest.raises(InputError, match="every must be >= 0"):
+        run(every=-1)
+    with pytest.raises(InputError, match=r"reference must be a finite \(steps \+ 1 = 11, m\)"):
+        run(reference=np.zeros((10, 3)))
+    with pytest.raises(InputError, match="reference must be a finite"):
+        run(reference=np.full((11, 3), np.nan))
+    with pytest.raises(InputError, match="leading axis of 2 worlds"):
+        run(params={"k": np.ones(3), "stop_at": np.full(2, 10)})
+    with pytest.raises(InputError, match="leading axis of 2 worlds"):
+        run(state={"q0": np.zeros(6), "n": np.zeros(2, int)})
+    with pytest.raises(InputError, match="start >= 0"):
+        run(pushes=PushSchedule(np.full((2, 1), -0.1), np.ones((2, 1)), np.zeros((2, 1, 3))))
+    with pytest.raises(InputError, match="policy must be a function"):
+        run(policy=None)
+    assert not sim._compiled  # nothing was compiled for any of them
+
+
 # ----------------------------------------------------------------------------- slow
 @pytest.mark.slow
 def test_float32_decimated_run_tracks_float64(batch):
@@ -300,3 +359,52 @@ def test_bench_runs_on_cpu():
     )
     assert out.returncode == 0, out.stderr[-3000:]
     assert "world-steps/s" in out.stdout and "backend" in out.stdout
+
+
+@pytest.mark.slow
+def test_closed_loop_sharded_stops_and_holds():
+    """The closed loop on a 2-device CPU mesh, 3 worlds padded to 4: a joint PD policy that
+    stops at sample 30 (world 0) or never (1, 2); world 2's target is 0.5 rad off on joint 1,
+    so that its first command, 10 A, asks 32 N m of joint 1 (effort fault at sample 1).
+    The same numbers on one device with another chunking."""
+    script = textwrap.dedent(
+        """
+        import numpy as np
+        from jaxcomp.hardware.mjx_sim import (BatchTruth, FAULT_EFFORT, FAULT_STOPPED,
+            MjxSimulator, batch_mesh)
+        from jaxcomp.hardware import TrueRobot
+        from jaxcomp.robot import load_robot
+
+        def policy(p, s, obs):
+            cmd = -p["k"] * (obs.q - s["q0"]) - 0.05 * obs.dq
+            return cmd, {"q0": s["q0"], "n": s["n"] + 1}, s["n"] + 1 > p["stop_at"]
+
+        def init(p, obs):
+            return {"q0": obs.q + p["offset"], "n": obs.q[0].astype(int) * 0}
+
+        robot = load_robot("gen3_lite")
+        truth = BatchTruth.from_truths(robot, [TrueRobot.draw(robot, seed=s) for s in range(3)])
+        offset = np.zeros((3, 6)); offset[2, 1] = 0.5
+        params = {"k": np.full(3, 20.0), "stop_at": np.array([30, 10**6, 10**6]),
+                  "offset": offset}
+        sim = MjxSimulator(robot, mesh=batch_mesh(2), chunk_steps=50)
+        rec = sim.run_closed_loop(truth, policy, params, init, 120, every=1, seed=1)
+        assert rec.q.shape == (3, 120, 6), rec.q.shape
+        assert list(rec.fault_step) == [30, -1, 1], rec.fault_step
+        assert list(rec.fault_code) == [FAULT_STOPPED, 0, FAULT_EFFORT], rec.fault_code
+        assert list(rec.state["n"]) == [30, 121, 1], rec.state["n"]
+        held = np.abs(rec.q[0, 30:] - rec.q[0, 29]).max()  # the servo catches the sag
+        assert held < 0.02 and np.abs(rec.dq[0, -20:]).max() < 0.01, held
+        again = MjxSimulator(robot, chunk_steps=40).run_closed_loop(
+            truth, policy, params, init, 120, every=1, seed=1)
+        err = np.abs(again.q - rec.q).max()
+        assert err < 1e-12, err
+        print("closed loop sharded ok", held, err)
+        """
+    )
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    out = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=900
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "closed loop sharded ok" in out.stdout

@@ -3,8 +3,6 @@
 The subcommands live in their own modules and register on the ``study`` group defined here.
 """
 
-import click
-
 from jaxcomp.cli.group import cli
 
 

@@ -1,0 +1,322 @@
+"""`jaxcomp study calibration`: truths, plan signals, batched moments and fits, the report.
+
+MJX compiles for ~20-30 s on a 2-core CPU: one in-process simulator (``_simulator``) serves
+every run here. The unmarked runs use a tiny plan (joints 1-4, +-25 deg at 60 deg/s, 14 s)
+in 2 worlds recorded at 100 Hz; ``--plan short`` (26 s, every joint) in 4 worlds is slow.
+"""
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import jaxcomp
+from jaxcomp.cli import cli
+from jaxcomp.cli import study_calibration as sc
+from jaxcomp.errors import InputError
+from jaxcomp.hardware import PAPER_FRICTION, PAPER_RATIO
+from jaxcomp.hardware.mjx_sim import Move, reference_trajectory
+from jaxcomp.identify import jax_fit
+from jaxcomp.identify.evaluate import (
+    error_statistics,
+    gravity_current_error,
+    gravity_current_error_batch,
+    random_poses,
+)
+from jaxcomp.identify.moments import sweep_moments, world_moments
+from jaxcomp.identify.plan import CalibrationPlan, Sweep
+from jaxcomp.robot_params import RobotParams
+
+ROOT = Path(__file__).resolve().parents[1]
+SEED = 3
+TIMING = ("timing_s", "throughput")  # the only keys a rerun may change
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return jaxcomp.load_robot("gen3_lite")
+
+
+@pytest.fixture(scope="module")
+def tiny_plan(robot, tmp_path_factory):
+    """Joints 1-4 of the short plan over +-25 deg (joint 1 from -20 deg): a 14 s plan file."""
+    short = sc.short_plan(robot)
+    sweeps = [
+        Sweep(s.joint, s.hold, max(s.lower, math.radians(-25)), math.radians(25), s.speed)
+        for s in short.sweeps
+        if s.joint in (1, 2, 3, 4)
+    ]
+    plan = CalibrationPlan(tuple(sweeps), short.move_speed, 0.2, short.ramp)
+    return str(plan.save(tmp_path_factory.mktemp("plan") / "tiny.json"))
+
+
+def _run(out: Path, plan: str, seed: int = SEED, *extra: str):
+    args = ["study", "calibration", "--worlds", "2", "--seed", str(seed), "--plan", plan]
+    args += ["--baseline-sample", "2", "--poses", "200", "--no-progress", "--out", str(out)]
+    result = CliRunner().invoke(cli, [*args, *extra])
+    assert result.exit_code == 0, result.output + repr(result.exception)
+    report = json.loads((out / "study.json").read_text())
+    with np.load(out / "worlds.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    return report, arrays, result.output
+
+
+@pytest.fixture(scope="module")
+def study(tiny_plan, tmp_path_factory):
+    out = tmp_path_factory.mktemp("study") / "a"
+    return (*_run(out, tiny_plan), out)
+
+
+# ----------------------------------------------------------------------------- no MJX
+def test_draw_truth_is_per_world_and_within_its_spread(robot):
+    spread = sc.TruthSpread()
+    big, small = sc.draw_truth(robot, 64, 7, spread), sc.draw_truth(robot, 3, 7, spread)
+    for f in ("ratio", "friction", "com_offset", "current_noise", "viscous"):
+        np.testing.assert_array_equal(getattr(small, f), getattr(big, f)[:3])  # world w: same
+    ratio0 = RobotParams.nominal(robot).ratio
+    off = np.abs(big.ratio / ratio0 - 1)
+    assert off.min() > 0.2 * 0.97 - 0.03 and off.max() < 0.3 * 1.03 + 0.03
+    # one factor per actuator type (M L M S S S) within the 3 % type spread
+    r = big.ratio / ratio0
+    assert np.abs(r[:, 0] / r[:, 2] - 1).max() < 0.07 and np.abs(r[:, 3] / r[:, 5] - 1).max() < 0.07
+    torque = big.friction / big.ratio
+    paper = np.array(PAPER_FRICTION) / np.array(PAPER_RATIO)
+    t_off = np.abs(torque / paper - 1)
+    assert t_off.min() >= 0.2 - 1e-12 and t_off.max() <= 0.3 + 1e-12
+    assert np.all(torque[:, 1] < paper[1])  # + would leave joint 1 under 65 % of its effort
+    assert (torque[:, 2] > paper[2]).any() and (torque[:, 2] < paper[2]).any()
+    assert np.abs(big.com_offset).max() <= 0.004 and np.all(big.com_offset[:, 0] == 0)  # base
+    assert np.all(big.current_noise == 0.05) and np.all(big.viscous == 0)
+    other = sc.draw_truth(robot, 3, 8, spread)
+    assert not np.allclose(other.ratio, small.ratio)
+    with pytest.raises(InputError, match="model-error"):
+        sc.TruthSpread(model_error=(0.4, 0.2))
+
+
+def test_plan_signal_is_what_the_recorder_commands(robot, tiny_plan):
+    plan = sc.load_study_plan(robot, tiny_plan)
+    start = sc.start_pose(robot)
+    sig = sc.plan_signal(plan, start)
+    moves = [Move(t, v, a, s) for _, _, t, v, a, s in plan.moves()]
+    np.testing.assert_array_equal(sig.q_ref, reference_trajectory(moves, start))
+    assert len(sig.q_ref) == plan.samples(start)
+    swept = sig.joint >= 0
+    assert set(np.unique(sig.direction[swept])) == {-1, 1} and np.all(sig.direction[~swept] == 0)
+    for i, s in enumerate(plan.sweeps):  # each sweep: its joint moves lower -> upper -> lower
+        rows = (sig.sweep == i) & swept
+        assert set(np.unique(sig.joint[rows])) == {s.joint}
+        q = sig.q_ref[rows, s.joint]
+        assert q.min() == pytest.approx(s.lower) and q.max() == pytest.approx(s.upper)
+
+
+def test_batched_gravity_error_and_statistics(robot):
+    """The batched gravity-current error is the per-world one; error statistics are right."""
+    poses = random_poses(robot, 50, seed=1)
+    truth = sc.draw_truth(robot, 2, 1, sc.TruthSpread())
+    fit_ratio, fit_com = truth.ratio * 1.01, truth.com_offset + 0.001
+    got = gravity_current_error_batch(
+        robot, truth.ratio, truth.com_offset, fit_ratio, fit_com, poses
+    )
+    for w in range(2):
+        t, f = (
+            RobotParams(robot.name, r, np.zeros(6), dict(zip(robot.link_names, c, strict=True)))
+            for r, c in ((truth.ratio[w], truth.com_offset[w]), (fit_ratio[w], fit_com[w]))
+        )
+        np.testing.assert_allclose(got[w], gravity_current_error(robot, t, f, poses), rtol=1e-9)
+    rng = np.random.default_rng(0)
+    err = rng.normal(0.0, 2.0, (4000, 2)) + [0.5, 0.0]
+    st = error_statistics(err, np.full_like(err, 2.0))
+    np.testing.assert_allclose(st["bias"], [0.5, 0.0], atol=0.1)
+    np.testing.assert_allclose(st["spread_over_std"], 1.0, atol=0.05)
+    assert abs(st["coverage"][1] - 0.95) < 0.015 and st["coverage"][0] < st["coverage"][1]
+    st = error_statistics(err, np.full_like(err, 1.0))  # std half the truth: under-covers
+    assert st["coverage"][1] < 0.7 and st["spread_over_std"][1] > 1.9
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--worlds", "0"], "--worlds must be an integer >= 1"),
+        (["--worlds", "2", "--every", "0"], "--every must be an integer >= 1"),
+        (["--worlds", "2", "--baseline-sample", "-1"], "--baseline-sample must be"),
+        (["--worlds", "2", "--model-error", "0.5", "0.2"], "--model-error"),
+        (["--worlds", "2", "--noise", "nan"], "--noise must be"),
+        (["--worlds", "2", "--plan", "nope"], "--plan must be one of"),
+    ],
+)
+def test_bad_input_is_refused_before_anything_runs(args, message, tmp_path):
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, ["study", "calibration", "--out", str(out), *args])
+    assert isinstance(result.exception, InputError), result.output
+    assert message in str(result.exception)
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_unwritable_out_dir_is_refused(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    for out in (blocker, blocker / "sub"):
+        result = CliRunner().invoke(cli, ["study", "calibration", "--worlds", "1", "--out", out])
+        assert isinstance(result.exception, InputError), result.output
+        assert "--out" in str(result.exception)
+
+
+# ----------------------------------------------------------------------------- one study
+def test_report_files_are_complete_and_valid(study):
+    report, arrays, output, out = study
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [*sc.FIGURES, "study.json", "worlds.npz"]
+    )
+    for name in sc.FIGURES:
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert (out / name).stat().st_size > 20_000
+    json.loads((out / "study.json").read_text(), parse_constant=pytest.fail)  # no NaN tokens
+    assert report["format"] == sc.FORMAT and report["worlds"] == 2 and report["seed"] == SEED
+    assert report["backend"] == "cpu" and report["devices"] == ["cpu:0"]
+    assert report["plan"]["sweeps"] == 4 and report["record_rate_hz"] == 100.0
+    assert report["jax"]["converged"] == 2 and report["faulted_worlds"] == 0
+    assert report["scipy"]["worlds"] == 2 and report["scipy"]["failed"] == []
+    t = report["timing_s"]
+    assert t["simulate"] >= t["simulate_stepping"] > 0 and t["total"] > t["fit_jax"] > 0
+    assert report["throughput"]["world_steps_per_s"] > 0
+    names = list(arrays["parameter_names"])
+    assert arrays["truth"].shape == arrays["jax_estimate"].shape == (2, len(names))
+    assert arrays["scipy_estimate"].shape == (2, 12)
+    assert set(report["jax"]["parameters"]) == set(names)
+    assert "coverage of +-1.96 std" in output and "ratio jax" in output
+
+
+def test_jax_fit_finds_the_true_robots(study, robot):
+    """Ratios are drawn 20-30 % off nominal: the fit of 14 s of sweeps at 100 Hz finds them,
+    the frictions and the gravity current within a few %, and the noise level."""
+    report, arrays, _, _ = study
+    names = [str(s) for s in arrays["parameter_names"]]
+    est, truth, ident = arrays["jax_estimate"], arrays["truth"], arrays["jax_identified"]
+    swept = [1, 2, 3, 4]
+    ratio = est[:, swept] / truth[:, swept] - 1
+    assert np.abs(ratio).max() < 0.08, ratio  # nominal would be >= 20 % off
+    friction = est[:, [6 + j for j in swept]] - truth[:, [6 + j for j in swept]]
+    assert np.abs(friction).max() < 0.03, friction  # A, of 0.3-1.5 A
+    g = arrays["jax_gravity_current_error"][:, swept]
+    assert np.all(g < 0.06), g
+    poses = random_poses(robot, 200, seed=SEED)  # the study's poses
+    truth_com = np.zeros((2, 7, 3))
+    model = jax_fit.fit_model(robot)
+    truth_com[:, model.link_ids] = truth[:, 18 : 18 + model.K].reshape(2, -1, 3)
+    nominal = gravity_current_error_batch(
+        robot,
+        truth[:, :6],
+        truth_com,
+        np.tile(RobotParams.nominal(robot).ratio, (2, 1)),
+        np.zeros((2, 7, 3)),
+        poses,
+    )[:, swept]
+    assert np.all(nominal > 0.15) and np.all(g < 0.3 * nominal), (g, nominal)
+    np.testing.assert_allclose(arrays["jax_noise_estimate"], 0.05, rtol=0.1)
+    # joints 0 and 5 are not swept: their frictions are not determined, their ratios tied
+    assert not ident[:, [0, 5, 6, 11]].any() and ident[:, [1, 2, 7, 8]].all()
+    cov = report["coverage"]["jax"]["identified"]
+    assert cov["count"] >= 20 and cov["coverage_95"] >= 0.8
+    table = report["jax"]["parameters"]
+    np.testing.assert_allclose(
+        table["ratio[1]"]["rmse"], np.sqrt(np.mean((est[:, 1] - truth[:, 1]) ** 2)), rtol=1e-12
+    )
+    assert names[-6:] == [f"phase_shift[{j}]" for j in range(6)]
+
+
+def test_same_seed_reproduces_the_numbers(study, tiny_plan, tmp_path):
+    first, arrays, _, _ = study
+    again, arrays2, _ = _run(tmp_path / "b", tiny_plan)
+    assert {k: v for k, v in again.items() if k not in TIMING} == {
+        k: v for k, v in first.items() if k not in TIMING
+    }
+    for k, v in arrays.items():
+        np.testing.assert_array_equal(arrays2[k], v, err_msg=k)
+    other, arrays3, _ = _run(tmp_path / "c", tiny_plan, SEED + 1, "--baseline-sample", "0")
+    assert not np.allclose(arrays3["truth"], arrays["truth"])
+    assert other["jax"]["parameters"] != first["jax"]["parameters"]
+    assert other["scipy"]["worlds"] == 0 and other["scipy"]["parameters"] == {}
+    assert arrays3["scipy_estimate"].shape == (0, 12)
+
+
+def test_batched_moments_and_fits_are_the_single_recording_ones(robot, tiny_plan):
+    """The study's streamed, batched path (moments of all worlds per sweep, vmapped fit) gives
+    what ``sweep_moments`` and ``jax_fit.fit`` give on the recording of a world."""
+    truth = sc.draw_truth(robot, 1, SEED, sc.TruthSpread())
+    signal = sc.plan_signal(sc.load_study_plan(robot, tiny_plan), sc.start_pose(robot))
+    sim = sc._simulator(None)
+    res = sc.simulate(sim, truth, signal, seed=SEED, every=10, world_batch=1, keep=1)
+    rec = res.recordings[0]
+    single, batched = sweep_moments(rec), world_moments(res.moments, 0)
+    np.testing.assert_array_equal(batched.joint, single.joint)
+    np.testing.assert_array_equal(batched.count, single.count)
+    np.testing.assert_array_equal(batched.hold, single.hold)
+    np.testing.assert_allclose(batched.moments, single.moments, rtol=1e-12, atol=1e-9)
+    # the current carries the world's noise: its residual about the truth is ~0.05 A. Both
+    # fits stop at the same convergence tolerance from moments equal to rounding, so their
+    # estimates agree far inside the standard errors (~1e-3 relative), not bit for bit.
+    model = jax_fit.fit_model(robot)
+    fit = jax_fit.fit_batch(model, res.moments)
+    want = jax_fit.fit(rec)
+    np.testing.assert_allclose(fit.solution.ratio[0], want.ratio, rtol=1e-6)
+    np.testing.assert_allclose(fit.solution.friction[0], want.friction, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(fit.std[0, :6], want.std["ratio"], rtol=1e-6)
+    assert float(fit.solution.sigma[0]) == pytest.approx(want.diagnostics["current_noise"])
+    assert 0.045 < float(fit.solution.sigma[0]) < 0.055
+
+
+def test_outputs_are_all_or_nothing(study, tmp_path, monkeypatch):
+    report, arrays, _, _ = study
+    out = sc.check_out_dir(tmp_path / "out")
+    (out / "study.json").write_text("{}")  # an earlier report stays as it was
+
+    def broken(*_args, **_kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(sc, "plot_coverage", broken)
+    with pytest.raises(RuntimeError, match="disk full"):
+        sc.write_outputs(out, report, arrays)
+    assert [p.name for p in out.iterdir()] == ["study.json"]
+    assert (out / "study.json").read_text() == "{}"
+
+
+# ----------------------------------------------------------------------------- slow
+@pytest.mark.slow
+def test_short_plan_on_four_worlds(tmp_path):
+    """The documented CPU run: every joint swept once, 4 worlds."""
+    out = tmp_path / "short"
+    args = ["study", "calibration", "--worlds", "4", "--plan", "short", "--seed", "1"]
+    result = CliRunner().invoke(cli, [*args, "--no-progress", "--out", str(out)])
+    assert result.exit_code == 0, result.output + repr(result.exception)
+    report = json.loads((out / "study.json").read_text())
+    assert report["jax"]["converged"] == 4 and report["plan"]["sweeps"] == 6
+    g = report["jax"]["gravity_current_error"]["max"]
+    assert max(g[1:5]) < 0.05, g
+    assert report["coverage"]["jax"]["identified"]["coverage_95"] >= 0.8
+
+
+@pytest.mark.slow
+def test_numbers_do_not_depend_on_the_device_count(tiny_plan, study, tmp_path):
+    """Two forced CPU devices (worlds sharded, 2 per MJX run): the same worlds and fits."""
+    out = tmp_path / "two"
+    args = ["study", "calibration", "--worlds", "2", "--seed", str(SEED), "--plan", tiny_plan]
+    args += ["--baseline-sample", "2", "--poses", "200", "--no-progress", "--out", str(out)]
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    code = "from jaxcomp.cli import main; main()"
+    done = subprocess.run(
+        [sys.executable, "-c", code, *args], env=env, capture_output=True, text=True, timeout=900
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    two = json.loads((out / "study.json").read_text())
+    assert len(two["devices"]) == 2 and two["world_batch"] == 2
+    with np.load(out / "worlds.npz") as data:
+        np.testing.assert_allclose(data["truth"], study[1]["truth"], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(
+            data["jax_estimate"], study[1]["jax_estimate"], rtol=1e-6, atol=1e-9
+        )
