@@ -9,7 +9,8 @@ current = r g_true(q) + l d + noise for the swept joint (g_true: the JAX gravity
 world's COM offsets; generated on the device, not timed). Then, timed separately:
 
 - moments: each recording reduced to its sweep moments on the host
-  (``identify.moments.sweep_moments_batch``, vectorized over recordings, one CPU core);
+  (``identify.moments.sweep_moments_batch``, vectorized over the recordings of a block,
+  blocks spread over ``--workers`` threads: numpy releases the GIL);
 - fits: ``identify.jax_fit.fit_batch`` of all recordings from their moments on the device, in
   batches of ``--batch`` (default all), compile time apart; best of ``--repeats``.
 
@@ -24,8 +25,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import jax
@@ -102,6 +105,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--devices", type=int, default=None, help="shard the fits over K devices")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--workers", type=int, default=os.cpu_count(), help="host threads for the moments"
+    )
     ap.add_argument("--json", default=None, help="also write the numbers to this JSON file")
     args = ap.parse_args()
     if args.count < 1 or args.every < 1 or args.block < 1 or args.repeats < 1:
@@ -120,17 +126,11 @@ def main() -> None:
         f"({1 / (DT * args.every):g} Hz)"
     )
 
+    blocks = list(recordings(robot, truth, signal, args.every, args.block, args.seed))
     t0 = time.perf_counter()
-    generate = moments_s = 0.0
-    parts = []
-    for t, q, dq, cur, joint, direction in recordings(
-        robot, truth, signal, args.every, args.block, args.seed
-    ):
-        t1 = time.perf_counter()
-        generate += t1 - t0
-        parts.append(sweep_moments_batch(t, q, dq, cur, joint, direction))
-        t0 = time.perf_counter()
-        moments_s += t0 - t1
+    with ThreadPoolExecutor(max(1, args.workers)) as pool:
+        parts = list(pool.map(lambda b: sweep_moments_batch(*b), blocks))
+    moments_s = time.perf_counter() - t0
     moments = stack_worlds(parts)
 
     runs, compile_s, fit = [], 0.0, None
@@ -156,7 +156,7 @@ def main() -> None:
         "plan": args.plan,
         "samples_per_recording": int(-(-len(signal.q_ref) // args.every)),
         "batch": args.batch or args.count,
-        "generate_s": generate,
+        "moment_workers": args.workers,
         "moments_s": moments_s,
         "fit_compile_s": compile_s,
         "fit_s": runs,
@@ -172,7 +172,8 @@ def main() -> None:
         f"{out['fits_per_min']:.3g} recordings/min (converged {out['converged']}/{args.count})"
     )
     print(
-        f"moments on the host: {moments_s:.2f} s -> {out['moments_per_min']:.3g} recordings/min; "
+        f"moments on the host ({args.workers} threads): {moments_s:.2f} s -> "
+        f"{out['moments_per_min']:.3g} recordings/min; "
         f"both: {out['end_to_end_per_min']:.3g} recordings/min"
     )
     print(

@@ -565,6 +565,25 @@ def test_cli_runs_the_simulator(tmp_path):
     assert json.loads((tmp_path / "timing.json").read_text())["cycles"] == 300
 
 
+def test_cli_guidance_with_a_params_file(tmp_path):
+    """`--mode guidance --params FILE` on the mobile robot: the controller reads the params
+    file (here the simulator's own truth), a push moves the end effector and the base follows."""
+    params = TrueRobot.draw(MOBILE, 3).params
+    path = params.save(tmp_path / "params.json")
+    args = ["control", "--mode", "guidance", "--params", str(path), "--duration", "1.0"]
+    args += ["--seed", "3", "--push", "0.1,0.6,10,0,0", "--out", str(tmp_path / "run")]
+    out = CliRunner().invoke(cli, args)
+    assert out.exit_code == 0, out.output + repr(out.exception)
+    assert "ended: completed" in out.output
+    rec = load_recording(tmp_path / "run" / "recording.npz", require_sweep=False)
+    assert rec.n_samples == 1001
+    base = rec.extra["base"]
+    assert base[-1, 0] - base[0, 0] > 0.005  # pushed along +x: the base followed, m
+    bad = args[:4] + [str(tmp_path / "missing.json")] + args[5:]
+    out = CliRunner().invoke(cli, bad)
+    assert isinstance(out.exception, InputError) and "missing.json" in str(out.exception)
+
+
 def test_viewer_target_marker():
     sim = Simulator(ARM)
     assert _target_marker(sim) is None  # headless: no viewer, no hook

@@ -118,13 +118,15 @@ def test_against_mujoco(case):
         np.testing.assert_allclose(case.jax[2][k], d.qfrc_bias, atol=TOL, rtol=0)
         for s in range(m.nsite):
             mujoco.mj_jacSite(m, d, jacp, jacr, s)
-            np.testing.assert_allclose(case.jax[3][k, s], np.vstack([jacp, jacr]), atol=TOL)
+            np.testing.assert_allclose(case.jax[3][k, s], np.vstack([jacp, jacr]), atol=TOL, rtol=0)
             np.testing.assert_allclose(case.jax[4][k, s], d.site_xpos[s], atol=TOL)
             if s == 0:
                 kd = case.kd
                 np.testing.assert_allclose(kd.gravity[k], g_ref.qfrc_bias, atol=TOL, rtol=0)
                 np.testing.assert_allclose(kd.mass_matrix[k], full_m, atol=TOL, rtol=0)
-                np.testing.assert_allclose(kd.jacobian[k], np.vstack([jacp, jacr]), atol=TOL)
+                np.testing.assert_allclose(
+                    kd.jacobian[k], np.vstack([jacp, jacr]), atol=TOL, rtol=0
+                )
                 np.testing.assert_allclose(kd.position[k], d.site_xpos[s], atol=TOL)
                 np.testing.assert_allclose(kd.rotation[k].ravel(), d.site_xmat[s], atol=TOL)
 
@@ -298,7 +300,7 @@ def test_mobile_arm_against_mujoco():
         mujoco.mj_jacSite(m, d, jacp, jacr, site)
         np.testing.assert_allclose(kd.gravity[k], d.qfrc_bias, atol=TOL, rtol=0)
         np.testing.assert_allclose(kd.mass_matrix[k], full_m, atol=TOL, rtol=0)
-        np.testing.assert_allclose(kd.jacobian[k], np.vstack([jacp, jacr]), atol=TOL)
+        np.testing.assert_allclose(kd.jacobian[k], np.vstack([jacp, jacr]), atol=TOL, rtol=0)
         np.testing.assert_allclose(kd.position[k], d.site_xpos[site], atol=TOL)
         np.testing.assert_allclose(kd.rotation[k].ravel(), d.site_xmat[site], atol=TOL)
 

@@ -89,7 +89,28 @@ def test_bad_commands_never_reach_the_arm():
             arm.cycle(ArmCommand(current=[0, 0, np.nan, 0, 0, 0]))
         with pytest.raises(InputError, match="beyond its limits"):
             arm.cycle(ArmCommand(current=[0, 0, 12.0, 0, 0, 0]))
+        with pytest.raises(InputError, match="current"):
+            arm.cycle(ArmCommand(current=[0.0] * 5))  # wrong length
+        arm.set_modes(ControlMode.POSITION)
+        n = emu.refresh_count
+        beyond = arm.read().q
+        beyond[3] = np.deg2rad(170.0)  # joint 3's limit is 154 deg
+        with pytest.raises(InputError, match="beyond its limits"):
+            arm.cycle(ArmCommand(position=beyond))
         assert emu.refresh_count == n
+
+
+def test_switching_to_current_while_moving_fast_is_refused_on_the_arm():
+    emu = _emulator()
+    with KortexArm.emulated(emu) as arm:
+        arm.set_mode(0, ControlMode.VELOCITY)
+        for _ in range(300):
+            state = arm.cycle(ArmCommand(velocity=[0.5, 0, 0, 0, 0, 0]))
+        assert state.dq[0] == pytest.approx(0.5, rel=0.02)
+        with pytest.raises(InputError, match="joint_0 moves at 0.5.* current mode is refused"):
+            arm.set_mode(0, ControlMode.CURRENT)
+        assert arm.modes[0] is ControlMode.VELOCITY
+    _assert_safe_and_closed(emu)
 
 
 def test_position_moves_through_low_level_servoing():
