@@ -712,8 +712,13 @@ class MjxSimulator:
         progress: Callable[[int, int], None] | None = None,
         on_chunk: Callable[[int, MjxRecording], None] | None = None,
         keep: bool = True,
+        group: Any = None,
     ) -> MjxRecording:
         """Drive every world through the position targets ``q_ref`` (T, n) rad at 1 kHz.
+
+        ``q_ref`` may also be (T, G, n): G references run side by side, world w following
+        reference ``group[w]`` ((W,) ints in [0, G); e.g. the sweeps of one plan as parallel
+        segments).
 
         Each world starts at ``initial_pose`` (name, (n,) or (W, n) rad; default "home"),
         is servoed there for ``settle_steps`` steps (as a fresh CPU ``Simulator``), then
@@ -731,16 +736,21 @@ class MjxSimulator:
         if settle_steps < 0:
             raise InputError("settle_steps must be >= 0")
         q_ref = np.asarray(q_ref, dtype=float)
-        if q_ref.ndim != 2 or q_ref.shape[1] != self.n or not np.isfinite(q_ref).all():
-            raise InputError(f"q_ref must be a finite (T, {self.n}) array of rad")
+        if q_ref.ndim == 2:
+            q_ref = q_ref[:, None]
+        if q_ref.ndim != 3 or q_ref.shape[2] != self.n or not np.isfinite(q_ref).all():
+            raise InputError(f"q_ref must be a finite (T, {self.n}) or (T, G, {self.n}) rad array")
         outside = (q_ref < self._hard[:, 0]) | (q_ref > self._hard[:, 1])
         if outside.any():
-            i, j = np.argwhere(outside)[0]
+            i, _, j = np.argwhere(outside)[0]
             raise InputError(
-                f"q_ref[{i}, {j}] = {q_ref[i, j]:.4g} rad is beyond joint {j}'s limits "
-                f"[{self._hard[j, 0]:.4g}, {self._hard[j, 1]:.4g}] rad"
+                f"q_ref[{i}, {j}] = {q_ref[i, :, j].max():.4g} rad is beyond joint {j}'s "
+                f"limits [{self._hard[j, 0]:.4g}, {self._hard[j, 1]:.4g}] rad"
             )
-        w, n, t_total = truth.worlds, self.n, q_ref.shape[0]
+        w, n, t_total, groups = truth.worlds, self.n, q_ref.shape[0], q_ref.shape[1]
+        group = np.zeros(w, np.int32) if group is None else np.asarray(group)
+        if group.shape != (w,) or not ((group >= 0) & (group < groups)).all():
+            raise InputError(f"group must be ({w},) ints in [0, {groups})")
         t_begin, compile_before = time.perf_counter(), self.compile_seconds
         q0 = self._initial_pose(initial_pose, w)
         fields = self.world_fields(truth)
@@ -753,9 +763,10 @@ class MjxSimulator:
         pad = np.minimum(np.arange(wp), w - 1)
         fields = {k: v[pad] for k, v in fields.items()}
         fields["key"] = keys[pad]
+        fields["group"] = group.astype(np.int32)[pad]
         q0 = q0[pad]
         chunk = self._chunk_steps(wp, every, max(t_total, settle_steps, 1))
-        fn = self._function(wp, chunk, every)
+        fn = self._function(wp, chunk, every, groups)
         put, put_shared = self._placement()
         fields = put(fields)
         t_prepared = time.perf_counter()
@@ -763,7 +774,7 @@ class MjxSimulator:
         carry = put((q0.astype(self.dtype), zeros, zeros, np.full(wp, -1, np.int32)))
         # settle: servo to q0 (target q0 = 0 reference + per-world offset q0)
         settle_fields = dict(fields, offset=put(q0.astype(self.dtype)))
-        zero_ref = put_shared(np.zeros((chunk, n), self.dtype))
+        zero_ref = put_shared(np.zeros((chunk, groups, n), self.dtype))
         for s in range(0, settle_steps, chunk):
             carry, _ = fn(
                 settle_fields,
@@ -782,7 +793,7 @@ class MjxSimulator:
         )
         pending: tuple | None = None
         for s in range(0, t_total, chunk):
-            ref = np.empty((chunk, n), self.dtype)
+            ref = np.empty((chunk, groups, n), self.dtype)
             k = min(chunk, t_total - s)
             ref[:k], ref[k:] = q_ref[s : s + k], q_ref[s + k - 1]
             carry, rec = fn(plan_fields, carry, put_shared(ref), np.int32(s), np.int32(k))
@@ -1096,8 +1107,8 @@ class MjxSimulator:
 
         return self._ahead_of_time(chunk_fn, carry_arg=2)
 
-    def _function(self, worlds: int, chunk: int, every: int) -> Callable:
-        key = (worlds, chunk, every)
+    def _function(self, worlds: int, chunk: int, every: int, groups: int) -> Callable:
+        key = (worlds, chunk, every, groups)
         if key not in self._compiled:
             self._compiled[key] = self._build_function(chunk, every)
         return self._compiled[key]
@@ -1121,7 +1132,7 @@ class MjxSimulator:
 
         def step(f, carry, i, qr, start, n_valid):
             qpos, qvel, qacc, fault = carry
-            target = qr[None, :] + f["offset"]
+            target = qr[f["group"]] + f["offset"]  # each world's reference (G, n) -> (W, n)
             q1, dq1, acc1, tau = vstep(f, qpos, qvel, qacc, target)
             valid = i < n_valid
             t = start + i

@@ -320,3 +320,44 @@ def test_numbers_do_not_depend_on_the_device_count(tiny_plan, study, tmp_path):
         np.testing.assert_allclose(
             data["jax_estimate"], study[1]["jax_estimate"], rtol=1e-6, atol=1e-9
         )
+
+
+def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, tiny_plan):
+    """``simulate(parallel=True)`` (each plan sweep its own MJX world, from rest where the
+    sweep before it ends) against the plan run in turn, same truths, noise off: the same
+    samples and labels; the swept joints' motion within 0.5 mrad; the held joints within
+    10 mrad (where Coulomb friction stops a joint under its servo depends on how it got
+    there, and a sweep in its own world starts from a freshly settled rest); the fits within
+    1e-3 (ratio, relative) and 0.1 mA (friction)."""
+    start = sc.start_pose(robot)
+    signal = sc.plan_signal(sc.load_study_plan(robot, tiny_plan), start)
+    seg = sc.plan_segments(signal, start, every=10)
+    assert len(seg.begin) == 4 and seg.end[-1] == len(signal.q_ref)
+    for k, (a, b, f) in enumerate(zip(seg.begin, seg.end, seg.first, strict=True)):
+        np.testing.assert_array_equal(seg.q_ref[a - f : b - f, k], signal.q_ref[a:b])
+        assert f % 10 == 0 and a - 10 < f <= a
+        assert k == 0 or (signal.direction[a] != 0 and signal.direction[a - 1] == 0)
+        np.testing.assert_array_equal(seg.signals[k].joint[a - f :], signal.joint[a:b])
+        np.testing.assert_array_equal(seg.start[k], signal.q_ref[f - 1] if f else start)
+
+    truth = sc.draw_truth(robot, 2, SEED, sc.TruthSpread(noise=0.0))
+    sim = sc._simulator(None)
+    kw = dict(seed=SEED, every=10, keep=2)
+    turn = sc.simulate(sim, truth, signal, world_batch=1, **kw)
+    side = sc.simulate(sim, truth, signal, world_batch=2, parallel=True, **kw)
+    assert side.world_steps == 2 * 4 * (len(seg.q_ref) + 500)
+    np.testing.assert_array_equal(side.fault_step, turn.fault_step)
+    for a, b in zip(side.recordings, turn.recordings, strict=True):
+        np.testing.assert_array_equal(a.t, b.t)
+        np.testing.assert_array_equal(a.joint, b.joint)
+        np.testing.assert_array_equal(a.direction, b.direction)
+        sw = np.flatnonzero(a.joint >= 0)
+        swept = np.abs(a.q[sw, a.joint[sw]] - b.q[sw, b.joint[sw]])
+        assert swept.max() < 5e-4 and np.abs(a.q - b.q).max() < 1e-2
+    np.testing.assert_array_equal(side.moments.joint, turn.moments.joint)
+    assert np.abs(side.moments.count - turn.moments.count).max() <= 1
+    model = jax_fit.fit_model(robot)
+    f_side = jax_fit.fit_batch(model, side.moments).solution
+    f_turn = jax_fit.fit_batch(model, turn.moments).solution
+    np.testing.assert_allclose(f_side.ratio, f_turn.ratio, rtol=1e-3)
+    np.testing.assert_allclose(f_side.friction, f_turn.friction, atol=1e-4)

@@ -141,7 +141,7 @@ def draw_truth(robot: Any, worlds: int, seed: int, spread: TruthSpread) -> Any:
     )
 
 
-def _truth_rows(truth: Any, rows: slice) -> Any:
+def _truth_rows(truth: Any, rows: slice | np.ndarray) -> Any:
     """The worlds ``rows`` of a ``BatchTruth``."""
     return type(truth)(**{f.name: getattr(truth, f.name)[rows] for f in dataclasses.fields(truth)})
 
@@ -208,6 +208,58 @@ def plan_signal(plan: Any, start: np.ndarray) -> PlanSignal:
     return PlanSignal(np.concatenate(parts), lab[:, 0], lab[:, 1], lab[:, 2])
 
 
+class Segments(NamedTuple):
+    """A ``PlanSignal`` cut into K segments, one a plan sweep (its passes up and down, then the
+    transfer to the next sweep's start and the settling there; segment 0 also holds the
+    transfer from the plan's start), to be simulated side by side as separate worlds
+    (``simulate(parallel=True)``).
+
+    Segment k starts at rest at ``start[k]`` (n,) rad (where segment k - 1 has settled; the
+    plan's start pose for k = 0) at plan step ``first[k]``, a multiple of the recording
+    decimation at or up to ``every`` - 1 steps before its sweep's first step ``begin[k]``,
+    and ends at step ``end[k]``. ``q_ref`` (L, K, n) rad: the references side by side, each
+    held at its last pose up to the longest length L; ``signals``: each segment's
+    ``PlanSignal`` (steps first[k] .. end[k]; the steps before begin[k], the end of segment
+    k - 1, are labelled outside sweeps).
+    """
+
+    q_ref: np.ndarray
+    start: np.ndarray
+    first: np.ndarray
+    begin: np.ndarray
+    end: np.ndarray
+    signals: list[PlanSignal]
+
+
+def plan_segments(signal: PlanSignal, start: np.ndarray, every: int) -> Segments:
+    """``Segments`` of ``signal`` (from the pose ``start`` (n,) rad), aligned to ``every``."""
+    d = signal.direction
+    cuts = (np.flatnonzero((d[1:] != 0) & (d[:-1] == 0)) + 1)[1:]  # the sweeps' first steps
+    begin = np.r_[0, cuts]
+    end = np.r_[cuts, len(signal.sweep)]
+    first = begin - begin % every
+    for f, a in zip(first[1:], begin[1:], strict=True):
+        if np.ptp(signal.q_ref[f - 1 : a], axis=0).max() > 0:
+            raise InputError("a plan sweep does not start at rest: sweeps cannot run in parallel")
+    length = int((end - first).max())
+    q_ref = np.empty((length, len(begin), signal.q_ref.shape[1]))
+    starts, signals = [], []
+    for k, (a, b, f) in enumerate(zip(begin, end, first, strict=True)):
+        ref = signal.q_ref[f:b]
+        q_ref[:, k] = np.concatenate([ref, np.repeat(ref[-1:], length - len(ref), axis=0)])
+        starts.append(np.asarray(start, float) if f == 0 else signal.q_ref[f - 1])
+        outside = np.arange(f, b) < a  # the tail of segment k - 1
+        signals.append(
+            PlanSignal(
+                ref,
+                np.where(outside, -1, signal.joint[f:b]),
+                np.where(outside, 0, signal.direction[f:b]),
+                np.full(b - f, k),
+            )
+        )
+    return Segments(q_ref, np.array(starts), first, begin, end, signals)
+
+
 # ----------------------------------------------------------------------------- recording
 class _Stream:
     """``on_chunk`` of an MJX run of worlds [first, first + W): adds each world's current
@@ -215,8 +267,17 @@ class _Stream:
     of the worlds below ``keep`` (global index)."""
 
     def __init__(
-        self, signal: PlanSignal, every: int, first: int, noise: np.ndarray, seed: int, keep: int
+        self,
+        signal: PlanSignal,
+        every: int,
+        first: int,
+        noise: np.ndarray,
+        seed: int,
+        keep: int,
+        segment: int | None = None,
     ):
+        """``segment``: the plan segment k these worlds run (``Segments``); their noise then
+        comes from ``SeedSequence([seed, stream, world, k])``."""
         from jaxcomp.hardware.interface import DT
 
         rec = np.arange(0, len(signal.joint), every)  # plan steps recorded
@@ -225,8 +286,10 @@ class _Stream:
         sweep = signal.sweep[rec]
         self.ends = np.flatnonzero(np.r_[sweep[1:] != sweep[:-1], True]) + 1  # segment ends
         self.noise = np.asarray(noise, float)
+        tail = [] if segment is None else [segment]
         self.gens = [
-            np.random.default_rng([seed, _NOISE_STREAM, first + i]) for i in range(len(noise))
+            np.random.default_rng([seed, _NOISE_STREAM, first + i, *tail])
+            for i in range(len(noise))
         ]
         self.keep = max(0, min(keep - first, len(noise)))
         self.kept: list[tuple[np.ndarray, ...]] = []
@@ -268,13 +331,17 @@ class _Stream:
             done += 1
         self.seconds += time.perf_counter() - t0
 
+    def kept_arrays(self) -> tuple[np.ndarray, ...]:
+        """q, dq, current (M, R, n) of the kept worlds, every sample received."""
+        return tuple(np.concatenate(x, axis=1) for x in zip(*self.kept, strict=True))
+
     def recordings(self, model: str) -> list[Any]:
         """The kept worlds' ``Recording`` (100 Hz with the default ``every``)."""
         from jaxcomp.recording import Recording
 
         if not self.keep:
             return []
-        q, dq, cur = (np.concatenate(x, axis=1) for x in zip(*self.kept, strict=True))
+        q, dq, cur = self.kept_arrays()
         return [
             Recording(self.t, q[i], dq[i], cur[i], self.joint, self.direction, model)
             for i in range(self.keep)
@@ -304,9 +371,15 @@ def simulate(
     world_batch: int,
     keep: int,
     progress: Callable[[int], None] | None = None,
+    parallel: bool = False,
 ) -> Simulated:
     """Record ``signal`` in every world of ``truth`` on the ``MjxSimulator`` ``sim``,
-    ``world_batch`` worlds per run; see the module docstring for noise and streaming."""
+    ``world_batch`` worlds per run; see the module docstring for noise and streaming.
+
+    ``parallel``: run the plan's K sweeps side by side (``plan_segments``), K MJX worlds per
+    true robot, each starting at rest where the sweep before it ends: K times the worlds for
+    about 1/K of the steps, which fills an accelerator that a few thousand worlds leave idle.
+    """
     from jaxcomp.hardware.mjx_sim import SETTLE_STEPS
     from jaxcomp.identify.moments import concat_moments, stack_worlds
 
@@ -316,6 +389,20 @@ def simulate(
     moments, recordings, faults = [], [], []
     keys = ("simulate", "simulate_compile", "simulate_stepping", "simulate_moments_host")
     timing = dict.fromkeys(keys, 0.0)
+    if parallel:
+        return _simulate_parallel(
+            sim,
+            quiet,
+            truth.current_noise,
+            signal,
+            start,
+            seed,
+            every,
+            world_batch,
+            keep,
+            progress,
+            timing,
+        )
     for first in range(0, n_worlds, world_batch):
         rows = slice(first, min(first + world_batch, n_worlds))
         stream = _Stream(signal, every, first, truth.current_noise[rows], seed, keep)
@@ -352,6 +439,90 @@ def simulate(
     return Simulated(
         stacked, recordings, np.concatenate(faults), timing, n_worlds * (steps + SETTLE_STEPS)
     )
+
+
+def _simulate_parallel(
+    sim, quiet, noise, signal, start, seed, every, world_batch, keep, progress, timing
+) -> Simulated:
+    """``simulate(parallel=True)``: world w of segment k is MJX world k * B + w of a run."""
+    from jaxcomp.hardware.interface import DT
+    from jaxcomp.hardware.mjx_sim import SETTLE_STEPS
+    from jaxcomp.identify.moments import concat_moments, stack_worlds
+    from jaxcomp.recording import Recording
+
+    seg = plan_segments(signal, start, every)
+    n_worlds, steps, (length, n_seg, _) = quiet.worlds, len(signal.q_ref), seg.q_ref.shape
+    moments, recordings, faults = [], [], []
+    rec_steps = np.arange(0, steps, every)
+    world_steps = 0
+    for first in range(0, n_worlds, world_batch):
+        rows = np.arange(first, min(first + world_batch, n_worlds))
+        width = len(rows)
+        streams = [
+            _Stream(seg.signals[k], every, first, noise[rows], seed, keep, segment=k)
+            for k in range(n_seg)
+        ]
+        done = [0]
+
+        def advance(k: int, _total: int, done=done, width=width) -> None:
+            if progress is not None:  # in plan steps of the worlds, as the sequential run
+                now = int(k * width * steps / length)
+                progress(now - done[0])
+                done[0] = now
+
+        def route(first_sample: int, chunk: Any, streams=streams, width=width) -> None:
+            for k, stream in enumerate(streams):
+                part = slice(k * width, (k + 1) * width)
+                stream(
+                    first_sample,
+                    chunk._replace(q=chunk.q[part], dq=chunk.dq[part], current=chunk.current[part]),
+                )
+
+        compiled = sim.compile_seconds
+        t0 = time.perf_counter()
+        rec = sim.run(
+            _truth_rows(quiet, np.tile(rows, n_seg)),
+            seg.q_ref,
+            np.repeat(seg.start, width, axis=0),
+            seed=seed,
+            every=every,
+            progress=advance,
+            on_chunk=route,
+            keep=False,
+            group=np.repeat(np.arange(n_seg), width),
+        )
+        timing["simulate"] += time.perf_counter() - t0
+        timing["simulate_compile"] += sim.compile_seconds - compiled
+        timing["simulate_stepping"] += sim.last_timing["settle"] + sim.last_timing["plan"]
+        timing["simulate_moments_host"] += sum(st.seconds for st in streams)
+        world_steps += width * n_seg * (length + SETTLE_STEPS)
+        if any(len(st.parts) != len(st.ends) for st in streams):
+            raise InputError("the simulation stopped before the plan's last sweep")
+        moments.append(concat_moments([p for st in streams for p in st.parts]))
+        local = rec.fault_step.reshape(n_seg, width)
+        at = np.where(local >= 0, local + seg.first[:, None], np.iinfo(np.int64).max)
+        faults.append(np.where((local >= 0).any(axis=0), at.min(axis=0), -1))
+        if streams[0].keep:  # the kept worlds' samples of each segment, in plan order
+            parts = []
+            for k, st in enumerate(streams):
+                idx = (
+                    rec_steps[(rec_steps >= seg.begin[k]) & (rec_steps < seg.end[k])] - seg.first[k]
+                ) // every
+                parts.append(tuple(a[:, idx] for a in st.kept_arrays()))
+            q, dq, cur = (np.concatenate(x, axis=1) for x in zip(*parts, strict=True))
+            recordings += [
+                Recording(
+                    (rec_steps + 1) * DT,
+                    q[i],
+                    dq[i],
+                    cur[i],
+                    signal.joint[rec_steps],
+                    signal.direction[rec_steps],
+                    sim.robot.name,
+                )
+                for i in range(streams[0].keep)
+            ]
+    return Simulated(stack_worlds(moments), recordings, np.concatenate(faults), timing, world_steps)
 
 
 def start_pose(robot: Any) -> np.ndarray:
@@ -603,6 +774,7 @@ def run_study(
     fit_batch: int | None = None,
     poses: int = 1000,
     progress: bool = True,
+    parallel: bool | None = None,
 ) -> tuple[dict, dict]:
     """The whole study: (report for study.json, per-world arrays for worlds.npz).
 
@@ -610,7 +782,9 @@ def run_study(
     ``world_batch``: worlds per MJX run (default: all on an accelerator, one per device on
     the CPU, where MJX steps a batch of worlds slower than one world at a time);
     ``fit_batch``: fits per vmapped batch (default all); ``poses``: random poses of the
-    gravity-current error (drawn from ``seed``).
+    gravity-current error (drawn from ``seed``); ``parallel``: the plan's sweeps side by side
+    (``simulate``; default: on an accelerator, where a few thousand worlds leave it idle; on
+    the CPU, where steps cost in proportion to the worlds, the sweeps run in turn).
     """
     from tqdm.auto import tqdm
 
@@ -640,6 +814,7 @@ def run_study(
     truth = draw_truth(robot, worlds, seed, spread)
     backend, mesh = jax.default_backend(), sim.mesh
     world_batch = world_batch or (worlds if backend != "cpu" else mesh.size)
+    parallel = backend != "cpu" if parallel is None else bool(parallel)
     keep = min(baseline_sample, worlds)
     timing = {"setup": time.perf_counter() - t_all}
 
@@ -659,6 +834,7 @@ def run_study(
         world_batch=world_batch,
         keep=keep,
         progress=bar.update,
+        parallel=parallel,
     )
     bar.close()
     timing |= simulated.timing
@@ -707,6 +883,7 @@ def run_study(
         "backend": backend,
         "devices": [str(d) for d in mesh.devices.flat],
         "world_batch": world_batch,
+        "parallel_sweeps": parallel,
         "faulted_worlds": int((simulated.fault_step >= 0).sum()),
         "jax": {
             "converged": int(fits.solution.converged.sum()),
@@ -1040,6 +1217,13 @@ def _save(fig: Any, path: Path) -> Path:
     help="Worlds per MJX run (default: all on an accelerator, one per device on the CPU).",
 )
 @click.option("--fit-batch", type=int, default=None, help="Fits per vmapped batch (default all).")
+@click.option(
+    "--parallel-sweeps/--sequential-sweeps",
+    "parallel",
+    default=None,
+    help="Simulate the plan's sweeps side by side (K worlds per robot, each from rest where "
+    "the sweep before it ends) or in turn. Default: side by side on an accelerator.",
+)
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def calibration(
     worlds: int,
@@ -1057,6 +1241,7 @@ def calibration(
     world_batch: int | None,
     fit_batch: int | None,
     progress: bool,
+    parallel: bool | None,
 ) -> None:
     """Calibrate N simulated true robots at once and compare with their truth (MJX).
 
@@ -1086,6 +1271,7 @@ def calibration(
         fit_batch=fit_batch,
         poses=poses,
         progress=progress,
+        parallel=parallel,
     )
     paths = write_outputs(out, report, arrays)
     click.echo(summary(report))
