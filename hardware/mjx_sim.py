@@ -75,6 +75,13 @@ AGREEMENT = {"q": 2e-8, "dq": 1e-6, "current": 5e-6}
 CLOSED_LOOP_AGREEMENT = {"q": 1e-8, "dq": 1e-7, "current": 5e-6, "rms": 1e-9}
 
 SETTLE_STEPS = 500  # the CPU Simulator's settling at the initial pose before t = 0
+#: Line-search steps per Newton iteration of the constraint solver (MuJoCo's default: 50).
+#: MuJoCo C leaves the line search once it converges; MJX, vmapped, runs every step of it,
+#: so the cap is paid each iteration. The Newton loop's own tolerance still decides when the
+#: solution is found (a capped line search only costs an extra iteration), and the agreement
+#: with the CPU simulator is the same to the last digit; 1.9x the world-steps/s of 50 on an
+#: H100 (65 536 worlds: 9.5e6 against 4.9e6).
+LS_ITERATIONS = 12
 PAYLOAD_BODY = "jaxcomp_payload"
 _GAIN_POSES = 64  # poses the CPU Simulator samples for its servo gains
 _GAIN_BATCH = 1024  # worlds per mass-matrix batch of the gain computation
@@ -307,6 +314,7 @@ def build_model(robot: Robot, payload: bool = False) -> mujoco.MjModel:
     spec = mujoco.MjSpec.from_file(str(robot.source))
     spec.option.timestep = DT
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    spec.option.ls_iterations = LS_ITERATIONS
     for j in arm_joint_indices(robot):  # as Simulator._build
         act = spec.add_actuator(
             name=f"jaxcomp_drive_{names[j]}",
