@@ -72,11 +72,8 @@ def sweep_moments(rec: Recording, fraction: float = STEADY_FRACTION) -> SweepMom
         ]
     )
     S = used.size
-    moments = np.empty((S, 6, 6))
-    for a in range(6):
-        for b in range(a, 6):
-            moments[:, a, b] = moments[:, b, a] = np.bincount(inverse, psi[a] * psi[b], S)
     first = np.searchsorted(inverse, np.arange(S))  # rows are in time order, ids ascending
+    moments = np.stack([p @ p.T for p in np.split(psi, first[1:], axis=1)])
     hold = np.stack([np.median(part, axis=0) for part in np.split(rec.q[rows], first[1:])])
     return SweepMoments(
         joint=joint[first],
