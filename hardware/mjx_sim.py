@@ -750,10 +750,11 @@ class MjxSimulator:
             raise InputError(f"q_ref must be a finite (T, {self.n}) or (T, G, {self.n}) rad array")
         outside = (q_ref < self._hard[:, 0]) | (q_ref > self._hard[:, 1])
         if outside.any():
-            i, _, j = np.argwhere(outside)[0]
+            i, g, j = np.argwhere(outside)[0]
+            where = f"{i}, {j}" if q_ref.shape[1] == 1 else f"{i}, {g}, {j}"
             raise InputError(
-                f"q_ref[{i}, {j}] = {q_ref[i, :, j].max():.4g} rad is beyond joint {j}'s "
-                f"limits [{self._hard[j, 0]:.4g}, {self._hard[j, 1]:.4g}] rad"
+                f"q_ref[{where}] = {q_ref[i, g, j]:.4g} rad is beyond joint {j}'s limits "
+                f"[{self._hard[j, 0]:.4g}, {self._hard[j, 1]:.4g}] rad"
             )
         w, n, t_total, groups = truth.worlds, self.n, q_ref.shape[0], q_ref.shape[1]
         group = np.zeros(w, np.int32) if group is None else np.asarray(group)
