@@ -763,15 +763,10 @@ class MjxSimulator:
         t_begin, compile_before = time.perf_counter(), self.compile_seconds
         q0 = self._initial_pose(initial_pose, w)
         fields = self.world_fields(truth)
-        keys = np.asarray(
-            jax.vmap(jax.random.fold_in, (None, 0))(jax.random.PRNGKey(seed), jnp.arange(w))
-        )
-        # pad the worlds to a multiple of the mesh size (copies of the last world, dropped)
-        shards = 1 if self.mesh is None else self.mesh.size
-        wp = -(-w // shards) * shards
-        pad = np.minimum(np.arange(wp), w - 1)
+        pad = self._world_padding(w)
+        wp = len(pad)
         fields = {k: v[pad] for k, v in fields.items()}
-        fields["key"] = keys[pad]
+        fields["key"] = _world_keys(seed, w)[pad]
         fields["group"] = group.astype(np.int32)[pad]
         q0 = q0[pad]
         chunk = self._chunk_steps(wp, every, max(t_total, settle_steps, 1))
@@ -898,14 +893,10 @@ class MjxSimulator:
             push_start=pushes.start.astype(self.dtype),
             push_duration=pushes.duration.astype(self.dtype),
             push_force=pushes.force.astype(self.dtype),
-            key=np.asarray(
-                jax.vmap(jax.random.fold_in, (None, 0))(jax.random.PRNGKey(seed), jnp.arange(w))
-            ),
+            key=_world_keys(seed, w),
         )
-        # pad the worlds to a multiple of the mesh size (copies of the last world, dropped)
-        shards = 1 if self.mesh is None else self.mesh.size
-        wp = -(-w // shards) * shards
-        pad = np.minimum(np.arange(wp), w - 1)
+        pad = self._world_padding(w)
+        wp = len(pad)
         padded = lambda tree: jax.tree_util.tree_map(lambda a: a[pad], tree)  # noqa: E731
         fields, params, q0 = padded(fields), padded(params), q0[pad].astype(self.dtype)
         zeros = np.zeros((wp, n), self.dtype)
@@ -984,6 +975,12 @@ class MjxSimulator:
                 f"initial_pose must be a pose name or finite ({self.n},) or ({w}, {self.n}) rad"
             )
         return np.array(q)
+
+    def _world_padding(self, w: int) -> np.ndarray:
+        """Indices of ``w`` worlds padded to a multiple of the mesh size with copies of the
+        last world (their results are dropped)."""
+        shards = 1 if self.mesh is None else self.mesh.size
+        return np.minimum(np.arange(-(-w // shards) * shards), w - 1)
 
     def _chunk_steps(self, worlds: int, every: int, steps: int) -> int:
         k = self.chunk_steps
@@ -1188,6 +1185,12 @@ class MjxSimulator:
             return compiled[0](*args)
 
         return call
+
+
+def _world_keys(seed: int, worlds: int) -> np.ndarray:
+    """(worlds, 2) PRNG keys: world w's is ``fold_in(PRNGKey(seed), w)``."""
+    fold = jax.vmap(jax.random.fold_in, (None, 0))
+    return np.asarray(fold(jax.random.PRNGKey(seed), jnp.arange(worlds)))
 
 
 def _per_world(tree: Any, worlds: int, name: str) -> Any:

@@ -429,10 +429,7 @@ def simulate(
             on_chunk=stream,
             keep=False,
         )
-        timing["simulate"] += time.perf_counter() - t0
-        timing["simulate_compile"] += sim.compile_seconds - compiled
-        timing["simulate_stepping"] += sim.last_timing["settle"] + sim.last_timing["plan"]
-        timing["simulate_moments_host"] += stream.seconds
+        _add_run_timing(timing, sim, t0, compiled, stream.seconds)
         if len(stream.parts) != len(stream.ends):
             raise InputError("the simulation stopped before the plan's last sweep")
         moments.append(concat_moments(stream.parts))
@@ -442,6 +439,15 @@ def simulate(
     return Simulated(
         stacked, recordings, np.concatenate(faults), timing, n_worlds * (steps + SETTLE_STEPS)
     )
+
+
+def _add_run_timing(timing: dict, sim: Any, t0: float, compiled: float, host: float) -> None:
+    """Add one MJX run of ``simulate`` to ``timing`` (s): wall time since ``t0``, compilation
+    (``sim.compile_seconds`` was ``compiled`` before), stepping, host moment reduction."""
+    timing["simulate"] += time.perf_counter() - t0
+    timing["simulate_compile"] += sim.compile_seconds - compiled
+    timing["simulate_stepping"] += sim.last_timing["settle"] + sim.last_timing["plan"]
+    timing["simulate_moments_host"] += host
 
 
 def _simulate_parallel(
@@ -494,10 +500,7 @@ def _simulate_parallel(
             keep=False,
             group=np.repeat(np.arange(n_seg), width),
         )
-        timing["simulate"] += time.perf_counter() - t0
-        timing["simulate_compile"] += sim.compile_seconds - compiled
-        timing["simulate_stepping"] += sim.last_timing["settle"] + sim.last_timing["plan"]
-        timing["simulate_moments_host"] += sum(st.seconds for st in streams)
+        _add_run_timing(timing, sim, t0, compiled, sum(st.seconds for st in streams))
         world_steps += width * n_seg * (length + SETTLE_STEPS)
         if any(len(st.parts) != len(st.ends) for st in streams):
             raise InputError("the simulation stopped before the plan's last sweep")
