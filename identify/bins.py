@@ -23,6 +23,8 @@ BIN_WIDTH = np.deg2rad(1.0)
 STEADY_FRACTION = 0.98
 #: Steady samples closer than this (s) to the first or last of their pass are left out.
 STEADY_TRIM = 0.05
+#: Medians over a pass (its speed; see ``steady``) take every MEDIAN_STRIDE-th sample of it.
+MEDIAN_STRIDE = 16
 
 
 @dataclass(frozen=True)
@@ -83,8 +85,9 @@ def steady(
     """(N,) bool: the constant-speed samples of every sweep pass.
 
     A sample is steady when its swept joint moves in the pass's direction at >= ``fraction``
-    of the pass speed (the median speed of the pass) and it lies more than ``trim`` s inside
-    the first and last such sample (the servo still accelerates there).
+    of the pass speed (the median speed of every ``MEDIAN_STRIDE``-th sample of the pass) and
+    it lies more than ``trim`` s inside the first and last such sample (the servo still
+    accelerates there).
     """
     ids = sweep_ids(rec.joint, rec.direction)
     swept = np.flatnonzero(ids >= 0)
@@ -96,7 +99,7 @@ def steady(
     t = rec.t[swept]
     bounds = np.flatnonzero(np.diff(key)) + 1  # passes are contiguous runs of one key
     for part in np.split(np.arange(swept.size), bounds):
-        ref = np.median(speed[part])
+        ref = np.median(speed[part[::MEDIAN_STRIDE]])
         if ref <= 0:
             continue
         fast = part[speed[part] >= fraction * ref]

@@ -1,24 +1,33 @@
-"""Sweep moments: a recording reduced to a 5 x 5 matrix per sweep, exact for the joint fit.
+"""Sweep moments: a recording reduced to a 6 x 6 matrix per sweep, exact for the joint fit.
 
 While joint j sweeps with the other joints held, its gravity torque is exactly
 a sin(theta) + b cos(theta) + c in the swept angle theta (the carried subtree turns rigidly
 about the joint axis), and so is each column of its regressor. With
 psi = [sin theta, cos theta, 1, d, v, current] per steady sample (d the direction, v the pass
-velocity in rad/s: d times the median speed of the pass, not the measured velocity, whose
-servo ripple correlates with the current; current the swept joint's in A), the sums
-``sum psi psi^T`` over a sweep hold everything a least-squares fit of Eq. (13) (plus a
+velocity in rad/s: d times the median speed of the pass's steady samples, not the measured
+velocity, whose servo ripple correlates with the current; current the swept joint's in A), the
+sums ``sum psi psi^T`` over a sweep hold everything a least-squares fit of Eq. (13) (plus a
 viscous term in v) on that sweep needs: the fit never touches the samples again.
+
+Two steps: ``pack`` (host, pure data movement) copies the swept joint's t, q, dq and current
+of every pass back to back, and q at every ``HOLD_STRIDE``-th sample for the held pose; the
+reduction (JAX, jitted, on the default backend: a GPU reduces thousands of recordings at once)
+finds the steady samples (``identify.bins.steady``'s rule) and sums the moments. Medians over a
+pass (its speed, for the steady threshold and v) take every ``HOLD_STRIDE``-th sample.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import partial
 from typing import NamedTuple
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxcomp.errors import InputError
-from jaxcomp.identify.bins import STEADY_FRACTION, STEADY_TRIM, steady, sweep_ids
+from jaxcomp.identify.bins import MEDIAN_STRIDE, STEADY_FRACTION, STEADY_TRIM
 from jaxcomp.recording import STANDARD_GRAVITY, Recording
 
 
@@ -49,53 +58,25 @@ class SweepMoments(NamedTuple):
 
 
 def sweep_moments(rec: Recording, fraction: float = STEADY_FRACTION) -> SweepMoments:
-    """The ``SweepMoments`` of ``rec`` (steady samples only; see ``identify.bins.steady``)."""
-    keep = steady(rec, fraction)
-    if not keep.any():
+    """The ``SweepMoments`` of ``rec``: its steady samples (see ``identify.bins.steady``),
+    reduced on the default JAX backend; sweeps without steady samples are left out."""
+    packed, length = pack([rec])
+    m = jax.tree.map(lambda a: np.asarray(a)[0], packed_moments(packed, length, fraction))
+    used = m.count > 0
+    if not used.any():
         raise InputError(
             "the recording has no steady sweep samples (the swept joint never moves at a "
             "constant speed in its direction)"
         )
-    rows = np.flatnonzero(keep)
-    ids = sweep_ids(rec.joint, rec.direction)[rows]
-    used, inverse = np.unique(ids, return_inverse=True)
-    joint = rec.joint[rows]
-    theta = rec.q[rows, joint]
-    psi = np.stack(
-        [
-            np.sin(theta),
-            np.cos(theta),
-            np.ones_like(theta),
-            rec.direction[rows].astype(float),
-            _pass_velocity(rec, rows, ids),
-            rec.current[rows, joint],
-        ]
-    )
-    S = used.size
-    first = np.searchsorted(inverse, np.arange(S))  # rows are in time order, ids ascending
-    moments = np.stack([p @ p.T for p in np.split(psi, first[1:], axis=1)])
-    hold = np.stack([np.median(part, axis=0) for part in np.split(rec.q[rows], first[1:])])
     return SweepMoments(
-        joint=joint[first],
-        hold=hold,
-        moments=moments,
-        count=moments[:, 2, 2].round().astype(np.int64),
+        joint=m.joint[used].astype(np.int64),
+        hold=m.hold[used],
+        moments=m.moments[used],
+        count=m.count[used].astype(np.int64),
         gravity=np.asarray(rec.gravity, float),
         payload_mass=float(rec.payload_mass),
         payload_com=np.asarray(rec.payload_com, float),
     )
-
-
-def _pass_velocity(rec: Recording, rows: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """(len(rows),) rad/s: direction times the median swept-joint speed of each pass."""
-    d = rec.direction[rows]
-    speed = np.abs(rec.dq[rows, rec.joint[rows]])
-    key = ids * 2 + (d > 0)
-    bounds = np.flatnonzero(np.diff(key)) + 1
-    out = np.empty(rows.size)
-    for part in np.split(np.arange(rows.size), bounds):
-        out[part] = np.median(speed[part])
-    return d * out
 
 
 def sweep_moments_batch(
@@ -117,9 +98,9 @@ def sweep_moments_batch(
     ``current`` (W, T, n) A are each world's. Returns a ``SweepMoments`` whose every field has
     a leading world axis: joint (W, S), hold (W, S, n), moments (W, S, 6, 6), count (W, S),
     gravity (W, 3), payload_mass (W,), payload_com (W, 3), with one entry per sweep of the
-    labels; a sweep without steady samples in a world has zero moments and count there (it
-    adds nothing to a fit). ``world_moments(batch, w)`` is world w's ``sweep_moments``, to
-    rounding (sums in another order). Vectorized over worlds, a Python loop over passes.
+    labels; a sweep without steady samples in a world has zero moments, hold and count there
+    (it adds nothing to a fit). ``world_moments(batch, w)`` is world w's ``sweep_moments``, to
+    rounding (sums in another order).
     """
     t = np.asarray(t, float)
     joint = np.asarray(joint)
@@ -130,50 +111,43 @@ def sweep_moments_batch(
         raise InputError(f"t, joint and direction must have shape ({steps},) like q's axis 1")
     if dq.shape != q.shape or current.shape != q.shape:
         raise InputError(f"q, dq and current must have the same shape (W, T, n), got {q.shape}")
-    ids = sweep_ids(joint, direction)
-    swept = np.flatnonzero(ids >= 0)
-    used = np.unique(ids[swept])
-    S = used.size
-    moments = np.zeros((w, S, 6, 6))
-    hold = np.zeros((w, S, n))
-    count = np.zeros((w, S), np.int64)
-    key = ids[swept] * 2 + (direction[swept] > 0)
-    passes = np.split(swept, np.flatnonzero(np.diff(key)) + 1) if swept.size else []
-    masks: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
-    for idx in passes:
-        s = int(np.searchsorted(used, ids[idx[0]]))
-        j, d = int(joint[idx[0]]), float(direction[idx[0]])
-        keep = _steady_pass(t[idx], dq[:, idx, j] * d, fraction, trim)
-        masks.setdefault(s, []).append((idx, keep))
-        speed = np.abs(dq[:, idx, j])
-        v = d * _masked_median(speed[:, :, None], keep)[:, 0]  # (W,) pass velocity, rad/s
-        theta = q[:, idx, j]
-        ones = np.ones_like(theta)
-        psi = np.stack(
-            [
-                np.sin(theta),
-                np.cos(theta),
-                ones,
-                d * ones,
-                np.nan_to_num(v)[:, None] * ones,
-                current[:, idx, j],
-            ],
-            axis=-1,
+    lay = layout(joint, direction)
+    S = lay.joint.size
+    if S == 0:
+        empty = np.zeros((w, 0))
+        return SweepMoments(
+            joint=empty.astype(np.int64),
+            hold=np.zeros((w, 0, n)),
+            moments=np.zeros((w, 0, 6, 6)),
+            count=empty.astype(np.int64),
+            gravity=np.broadcast_to(np.asarray(gravity, float), (w, 3)).copy(),
+            payload_mass=np.zeros(w),
+            payload_com=np.zeros((w, 3)),
         )
-        weighted = psi * keep[:, :, None]
-        moments[:, s] += np.einsum("wla,wlb->wab", weighted, psi)
-    for s, parts in masks.items():
-        idx = np.concatenate([p[0] for p in parts])
-        keep = np.concatenate([p[1] for p in parts], axis=1)
-        hold[:, s] = np.nan_to_num(_masked_median(q[:, idx], keep))
-        count[:, s] = keep.sum(axis=1)
-    first = swept[np.searchsorted(ids[swept], used)]  # sweep ids ascend with time
-    sweep_joint = joint[first]
-    return SweepMoments(
-        joint=np.broadcast_to(sweep_joint, (w, S)).astype(np.int64),
+    rows, cols, hold_rows = lay.gather()
+    S_pad, N, H, L = lay.sizes()
+    samples = np.zeros((w, 4, N))
+    samples[:, 0, : rows.size] = t[rows]
+    samples[:, 1, : rows.size] = q[:, rows, cols]
+    samples[:, 2, : rows.size] = dq[:, rows, cols]
+    samples[:, 3, : rows.size] = current[:, rows, cols]
+    hold = np.zeros((w, H, n))
+    hold[:, : hold_rows.size] = q[:, hold_rows]
+    meta = {k: np.broadcast_to(v, (w, *v.shape[1:])) for k, v in _meta([lay], S_pad).items()}
+    packed = Packed(
+        samples=samples,
         hold=hold,
-        moments=moments,
-        count=count,
+        **meta,
+        gravity=np.broadcast_to(np.asarray(gravity, float), (w, 3)),
+        payload_mass=np.zeros(w),
+        payload_com=np.zeros((w, 3)),
+    )
+    m = jax.tree.map(np.asarray, packed_moments(packed, L, fraction, trim))
+    return SweepMoments(
+        joint=np.broadcast_to(lay.joint, (w, S)).astype(np.int64),
+        hold=m.hold[:, :S],
+        moments=m.moments[:, :S],
+        count=m.count[:, :S].astype(np.int64),
         gravity=np.broadcast_to(np.asarray(gravity, float), (w, 3)).copy(),
         payload_mass=np.zeros(w),
         payload_com=np.zeros((w, 3)),
@@ -217,26 +191,239 @@ def stack_worlds(parts: Sequence[SweepMoments]) -> SweepMoments:
     return SweepMoments(*(np.concatenate([getattr(p, f) for p in parts]) for f in parts[0]._fields))
 
 
-def _steady_pass(t: np.ndarray, speed: np.ndarray, fraction: float, trim: float) -> np.ndarray:
-    """(W, L) bool: ``identify.bins.steady`` of one pass in every world; ``t`` (L,) s,
-    ``speed`` (W, L) rad/s along the pass's direction."""
-    ref = np.median(speed, axis=1, keepdims=True)
-    fast = (speed >= fraction * ref) & (ref > 0)
-    has = fast.any(axis=1)
-    lo = t[np.argmax(fast, axis=1)]
-    hi = t[t.size - 1 - np.argmax(fast[:, ::-1], axis=1)]
-    inside = (t[None] > lo[:, None] + trim) & (t[None] < hi[:, None] - trim)
-    return fast & inside & has[:, None]
+# ------------------------------------------------------------------------ packing (host)
+#: The held pose of a sweep is the mean of q over every HOLD_STRIDE-th steady sample (counted
+#: from the start of each pass), as the pass medians take every such sample.
+HOLD_STRIDE = MEDIAN_STRIDE
+_PASS_BUCKET = 1024  # samples: pass lengths round up to this (few compiled shapes)
+_SAMPLE_BUCKET = 1 << 15
+_SWEEP_BUCKET = 8
 
 
-def _masked_median(x: np.ndarray, keep: np.ndarray) -> np.ndarray:
-    """(W, k) median over axis 1 of ``x`` (W, L, k) where ``keep`` (W, L); NaN where none.
+def _up(n: int, bucket: int) -> int:
+    return max(bucket, -(-n // bucket) * bucket)
 
-    Exactly ``np.median`` of the kept values: the middle one, or the mean of the two."""
-    data = np.where(keep[:, :, None], x, np.inf)
-    data.sort(axis=1)
-    c = keep.sum(axis=1)[:, None]  # (W, 1)
-    lo = np.take_along_axis(data, np.maximum((c - 1) // 2, 0)[:, :, None], axis=1)[:, 0]
-    hi = np.take_along_axis(data, np.maximum(c // 2, 0)[:, :, None], axis=1)[:, 0]
-    hi = np.where(c > 0, hi, np.nan)
-    return np.where(c > 0, (lo + hi) / 2, np.nan)
+
+class Packed(NamedTuple):
+    """The swept-joint samples of a recording, what ``packed_moments`` reduces (host or device
+    arrays; a batch has a leading axis on every field).
+
+    S sweeps of up to two passes (slot 0 the first, slot 1 the return). samples (4, N): t s,
+    the swept joint's q rad, dq rad/s and current A, the passes back to back, zero-padded.
+    hold (H, n) rad: q of every HOLD_STRIDE-th sample of each pass, back to back. start,
+    length, hold_start (S, 2) int: where each pass begins in samples and in hold, and its
+    sample count (0: no such pass). direction (S, 2) float, +1 / -1 (0: no pass). joint (S,)
+    int, the swept joint. gravity (3,) m/s^2, payload_mass kg, payload_com (3,) m.
+    """
+
+    samples: np.ndarray
+    hold: np.ndarray
+    start: np.ndarray
+    length: np.ndarray
+    hold_start: np.ndarray
+    direction: np.ndarray
+    joint: np.ndarray
+    gravity: np.ndarray
+    payload_mass: np.ndarray
+    payload_com: np.ndarray
+
+
+class Layout(NamedTuple):
+    """Where the passes of each sweep lie in a recording (from its labels alone).
+
+    joint (S,) int; first, length (S, 2) int: first sample and sample count of each pass
+    (length 0: no second pass); direction (S, 2) int. Sweeps are as ``identify.bins.sweep_ids``
+    numbers them.
+    """
+
+    joint: np.ndarray
+    first: np.ndarray
+    length: np.ndarray
+    direction: np.ndarray
+
+    @property
+    def held(self) -> np.ndarray:
+        """(S, 2) hold rows of each pass: its every HOLD_STRIDE-th sample."""
+        return -(-self.length // HOLD_STRIDE)
+
+    def sizes(self) -> tuple[int, int, int, int]:
+        """Bucketed (S sweeps, N samples, H hold rows, L pass length) of the packed form."""
+        return (
+            _up(self.joint.size, _SWEEP_BUCKET),
+            _up(int(self.length.sum()), _SAMPLE_BUCKET),
+            _up(int(self.held.sum()), _SAMPLE_BUCKET // HOLD_STRIDE),
+            _up(int(self.length.max(initial=1)), _PASS_BUCKET),
+        )
+
+    def gather(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Recording rows and swept-joint columns of the packed samples, and the hold rows."""
+        rows, cols, hold = [], [], []
+        for j, first, length in zip(self.joint, self.first, self.length, strict=True):
+            for f, n in zip(first, length, strict=True):
+                rows.append(np.arange(f, f + n))
+                hold.append(np.arange(f, f + n, HOLD_STRIDE))
+                cols.append(np.full(n, j))
+        return np.concatenate(rows), np.concatenate(cols), np.concatenate(hold)
+
+
+def layout(joint: np.ndarray, direction: np.ndarray) -> Layout:
+    """The ``Layout`` of the labels ``joint`` (N,) and ``direction`` (N,): each contiguous run
+    of one swept joint holds passes of alternating direction, two to a sweep."""
+    joint = np.asarray(joint)
+    direction = np.asarray(direction)
+    edges = np.flatnonzero((joint[1:] != joint[:-1]) | (direction[1:] != direction[:-1])) + 1
+    starts = np.r_[0, edges]
+    ends = np.r_[edges, joint.size]
+    sweeps: list[tuple[int, list[tuple[int, int, int]]]] = []
+    previous, k = -1, 0
+    for s, e in zip(starts.tolist(), ends.tolist(), strict=True):
+        j = int(joint[s])
+        if j < 0:
+            previous = -1
+            continue
+        k = k + 1 if j == previous else 0
+        if k % 2 == 0:
+            sweeps.append((j, []))
+        sweeps[-1][1].append((s, e - s, int(direction[s])))
+        previous = j
+    S = len(sweeps)
+    first = np.zeros((S, 2), np.int64)
+    length = np.zeros((S, 2), np.int64)
+    sign = np.zeros((S, 2), np.int64)
+    for i, (_, passes) in enumerate(sweeps):
+        for slot, (s, n, d) in enumerate(passes):
+            first[i, slot], length[i, slot], sign[i, slot] = s, n, d
+    return Layout(np.array([j for j, _ in sweeps], np.int64), first, length, sign)
+
+
+class PackBuffer:
+    """Host buffers that ``pack`` reuses from call to call (one per thread): writing into
+    memory already mapped is several times faster than into fresh pages."""
+
+    def __init__(self) -> None:
+        self._samples = np.zeros((0, 4, 0))
+        self._hold = np.zeros((0, 0, 0))
+
+    def take(self, k: int, N: int, H: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Views (k, 4, N) and (k, H, n) with arbitrary finite contents (of the arrays from
+        before when they are large enough)."""
+        if any(a < b for a, b in zip(self._samples.shape, (k, 4, N), strict=True)):
+            self._samples = np.zeros((k, 4, N))
+        if any(a < b for a, b in zip(self._hold.shape, (k, H, n), strict=True)):
+            self._hold = np.zeros((k, H, n))
+        return self._samples[:k, :, :N], self._hold[:k, :H, :n]
+
+
+def _meta(lays: Sequence[Layout], S: int) -> dict[str, np.ndarray]:
+    """Per-pass fields of ``Packed`` for the layouts, stacked and padded to S sweeps."""
+    k = len(lays)
+    out = {f: np.zeros((k, S, 2), np.int64) for f in ("start", "length", "hold_start")}
+    out["direction"] = np.zeros((k, S, 2))
+    out["joint"] = np.zeros((k, S), np.int64)
+    for i, lay in enumerate(lays):
+        m = lay.joint.size
+        ends = np.cumsum(lay.length.ravel()).reshape(-1, 2)
+        held = np.cumsum(lay.held.ravel()).reshape(-1, 2)
+        out["start"][i, :m] = ends - lay.length
+        out["hold_start"][i, :m] = held - lay.held
+        out["length"][i, :m] = lay.length
+        out["direction"][i, :m] = lay.direction
+        out["joint"][i, :m] = lay.joint
+    return out
+
+
+def pack(recs: Sequence[Recording], buffer: PackBuffer | None = None) -> tuple[Packed, int]:
+    """The swept-joint samples of recordings, stacked (a leading axis on every field of the
+    ``Packed``; host arrays, padded to the largest), and the pass length (samples) to reduce
+    them with. Pure data movement: a strided copy of four columns and a subsample of q.
+
+    ``buffer``: reuse its arrays for samples and hold (the result then aliases them: send it
+    to the device before the next ``pack`` into the same buffer)."""
+    lays = [layout(r.joint, r.direction) for r in recs]
+    for i, lay in enumerate(lays):
+        if lay.joint.size == 0:
+            raise InputError(f"recording {i} has no sweep (field 'joint' is -1 everywhere)")
+    n = recs[0].q.shape[1]
+    S, N, H, L = (max(dims) for dims in zip(*(lay.sizes() for lay in lays), strict=True))
+    k = len(recs)
+    samples, hold = (buffer or PackBuffer()).take(k, N, H, n)
+    for i, (rec, lay) in enumerate(zip(recs, lays, strict=True)):
+        at = held = 0
+        for j, first, length in zip(lay.joint.tolist(), lay.first, lay.length, strict=True):
+            for f, m in zip(first.tolist(), length.tolist(), strict=True):
+                part = slice(f, f + m)
+                samples[i, 0, at : at + m] = rec.t[part]
+                samples[i, 1, at : at + m] = rec.q[part, j]
+                samples[i, 2, at : at + m] = rec.dq[part, j]
+                samples[i, 3, at : at + m] = rec.current[part, j]
+                h = -(-m // HOLD_STRIDE)
+                hold[i, held : held + h] = rec.q[f : f + m : HOLD_STRIDE]
+                at, held = at + m, held + h
+    packed = Packed(
+        samples=samples,
+        hold=hold,
+        **_meta(lays, S),
+        gravity=np.stack([np.asarray(r.gravity, float) for r in recs]),
+        payload_mass=np.array([float(r.payload_mass) for r in recs]),
+        payload_com=np.stack([np.asarray(r.payload_com, float) for r in recs]),
+    )
+    return packed, L
+
+
+# ----------------------------------------------------------------------- reduction (JAX)
+def _median(x: jax.Array, keep: jax.Array, axis: int = -1) -> jax.Array:
+    """Median of ``x`` over ``axis`` where ``keep``, exactly ``np.median`` of the kept values
+    (the middle one, or the mean of the two); NaN where none is kept."""
+    data = jnp.sort(jnp.where(keep, x, jnp.inf), axis=axis)
+    c = jnp.sum(keep, axis=axis, keepdims=True)
+    lo = jnp.take_along_axis(data, jnp.maximum((c - 1) // 2, 0), axis=axis)
+    hi = jnp.take_along_axis(data, jnp.maximum(c // 2, 0), axis=axis)
+    return jnp.squeeze(jnp.where(c > 0, 0.5 * (lo + hi), jnp.nan), axis)
+
+
+def reduce_packed(p: Packed, L: int, fraction: float, trim: float) -> SweepMoments:
+    """Sweep moments of one packed recording, its passes padded to ``L`` samples (pure,
+    vmap-able; ``packed_moments`` is its jitted form). ``fraction`` and ``trim``: see
+    ``identify.bins.steady``."""
+    off = jnp.arange(L)
+    valid = off < p.length[..., None]  # (S, 2, L)
+    idx = jnp.minimum(p.start[..., None] + off, p.samples.shape[-1] - 1)
+    t, theta, rate, current = (p.samples[k][idx] for k in range(4))
+    d = p.direction[..., None]
+    speed = rate * d  # along the pass's direction
+    sub = slice(None, None, HOLD_STRIDE)  # the medians are over every HOLD_STRIDE-th sample
+    ref = _median(speed[..., sub], valid[..., sub])[..., None]  # (S, 2, 1) pass speed
+    fast = valid & (speed >= fraction * ref) & (ref > 0)
+    lo = jnp.min(jnp.where(fast, t, jnp.inf), axis=-1, keepdims=True)
+    hi = jnp.max(jnp.where(fast, t, -jnp.inf), axis=-1, keepdims=True)
+    steady = fast & (t > lo + trim) & (t < hi - trim)
+    v = jnp.nan_to_num(d[..., 0] * _median(speed[..., sub], steady[..., sub]))[..., None]
+    ones = jnp.ones_like(theta)
+    psi = jnp.stack(
+        [jnp.sin(theta), jnp.cos(theta), ones, d * ones, v * ones, current], axis=-1
+    )  # (S, 2, L, 6)
+    moments = jnp.einsum("skla,skl,sklb->sab", psi, steady.astype(psi.dtype), psi)
+    hidx = jnp.minimum(p.hold_start[..., None] + jnp.arange(L // HOLD_STRIDE), p.hold.shape[0] - 1)
+    S = p.joint.shape[0]
+    held = p.hold[hidx].reshape(S, -1, p.hold.shape[-1])  # (S, 2 L / stride, n)
+    keep = steady[..., sub].reshape(S, -1, 1).astype(held.dtype)
+    hold = jnp.sum(held * keep, axis=1) / jnp.maximum(jnp.sum(keep, axis=1), 1.0)
+    return SweepMoments(
+        joint=p.joint,
+        hold=hold,
+        moments=moments,
+        count=jnp.sum(steady, axis=(1, 2)),
+        gravity=p.gravity,
+        payload_mass=p.payload_mass,
+        payload_com=p.payload_com,
+    )
+
+
+@partial(jax.jit, static_argnums=(1, 2, 3))
+def packed_moments(
+    packed: Packed, length: int, fraction: float = STEADY_FRACTION, trim: float = STEADY_TRIM
+) -> SweepMoments:
+    """Device ``SweepMoments`` of stacked ``pack``ed recordings (passes padded to ``length``
+    samples; a leading axis on every field), on their bucketed sweeps: padding sweeps have
+    zero count."""
+    return jax.vmap(reduce_packed, in_axes=(0, None, None, None))(packed, length, fraction, trim)

@@ -82,7 +82,7 @@ def test_phase_shift_matches_the_truth_phase(robot, truth, synthetic_fit):
     model = jax_fit.fit_model(robot)
     st, coef, m = jax_fit.prepare(model, rec)
     com = np.concatenate([truth.com_offset[link] for link in model.links])
-    phase, _ = jax_fit.phase_shift(model, coef, m, com, np.zeros((model.K, model.K)))
+    phase, _ = jax_fit.phase_shift(model, coef, m.joint, com, np.zeros((model.K, model.K)))
     assert np.all(np.abs(fitted.phase_shift - phase)[1:5] < 3 * fitted.std["phase_shift"][1:5])
     assert np.abs(phase[1:5]).max() > np.deg2rad(0.2)  # the truth has a phase shift to find
 

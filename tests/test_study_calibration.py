@@ -317,8 +317,10 @@ def test_numbers_do_not_depend_on_the_device_count(tiny_plan, study, tmp_path):
     assert len(two["devices"]) == 2 and two["world_batch"] == 2
     with np.load(out / "worlds.npz") as data:
         np.testing.assert_allclose(data["truth"], study[1]["truth"], rtol=1e-9, atol=1e-12)
+        # the moments are XLA sums, whose order may follow the batch shape: the fits agree to
+        # their convergence tolerance (COM offsets to 0.1 um, far inside their mm-scale std)
         np.testing.assert_allclose(
-            data["jax_estimate"], study[1]["jax_estimate"], rtol=1e-6, atol=1e-9
+            data["jax_estimate"], study[1]["jax_estimate"], rtol=1e-6, atol=1e-7
         )
 
 

@@ -52,7 +52,7 @@ BENCHMARKS: dict[str, Benchmark] = {
     "fit": Benchmark(
         "bench_fit.py",
         "issue 4: one ~230 000-sample recording fitted (<= 1 s); --each batch vs the scipy loop",
-        quick=("--count", "4", "--scipy-count", "1"),
+        quick=("--count", "4", "--scipy-count", "1", "--pool", "4"),
     ),
     "control": Benchmark(
         "bench_control.py",

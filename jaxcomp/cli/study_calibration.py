@@ -595,8 +595,8 @@ def jax_estimates(
     for i in range(w):
         m = world_moments(simulated.moments, i, keep_empty=True)
         cov = sol.cov[i, lin:, lin:]
-        fit_phase = phase_shift(model, fits.coef[i], m, sol.com[i], cov)
-        true_phase, _ = phase_shift(model, fits.coef[i], m, true[i, lin:], cov)
+        fit_phase = phase_shift(model, fits.coef[i], m.joint, sol.com[i], cov)
+        true_phase, _ = phase_shift(model, fits.coef[i], m.joint, true[i, lin:], cov)
         phases.append((fit_phase[0], fit_phase[1], true_phase))
     phase, phase_std, true_phase = (np.array(x) for x in zip(*phases, strict=True))
     ident = identified(model, sol.excited, fits.std)

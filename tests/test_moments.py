@@ -1,0 +1,117 @@
+"""Sweep moments: the packed layout, and the JAX reduction against sums over the samples."""
+
+import numpy as np
+import pytest
+import synthetic
+
+from jaxcomp.errors import InputError
+from jaxcomp.identify.bins import MEDIAN_STRIDE, steady, sweep_ids
+from jaxcomp.identify.moments import PackBuffer, layout, pack, packed_moments, sweep_moments
+from jaxcomp.recording import Recording
+
+
+def _labels(runs):
+    """joint, direction arrays from runs of (joint, direction, samples)."""
+    joint = np.concatenate([np.full(n, j) for j, _, n in runs])
+    direction = np.concatenate([np.full(n, d) for _, d, n in runs])
+    return joint, direction
+
+
+def test_layout_numbers_the_sweeps_as_sweep_ids():
+    rng = np.random.default_rng(0)
+    runs = []
+    for _ in range(40):
+        if rng.random() < 0.3:
+            runs.append((-1, 0, int(rng.integers(1, 5))))
+            continue
+        j = int(rng.integers(0, 3))
+        d = int(rng.choice([-1, 1]))
+        for _ in range(int(rng.integers(1, 6))):  # 1 to 5 passes back to back
+            runs.append((j, d, int(rng.integers(1, 7))))
+            d = -d
+    joint, direction = _labels(runs)
+    lay = layout(joint, direction)
+    ids = sweep_ids(joint, direction)
+    seen = np.full(joint.size, -1)
+    for s in range(lay.joint.size):
+        for k in range(2):
+            f, n = lay.first[s, k], lay.length[s, k]
+            assert (n == 0) == (lay.direction[s, k] == 0)
+            seen[f : f + n] = s
+            assert np.all(joint[f : f + n] == lay.joint[s])
+            assert np.all(direction[f : f + n] == lay.direction[s, k])
+    np.testing.assert_array_equal(seen, ids)
+
+
+@pytest.fixture(scope="module")
+def rec(sim_calibration):
+    clean, _ = sim_calibration
+    return synthetic.with_noise(clean, 0.05, seed=3)
+
+
+def _numpy_moments(rec: Recording):
+    """The moments, counts and held poses summed sample by sample with numpy."""
+    keep = steady(rec)
+    ids = sweep_ids(rec.joint, rec.direction)
+    out = []
+    for s in range(ids.max() + 1):
+        rows = np.flatnonzero((ids == s) & keep)
+        j = rec.joint[rows[0]]
+        psi = np.empty((rows.size, 6))
+        held = []
+        for d in (-1, 1):
+            pass_rows = np.flatnonzero((ids == s) & (rec.direction == d))
+            if pass_rows.size == 0:
+                continue
+            sub = pass_rows[::MEDIAN_STRIDE]
+            sub = sub[keep[sub]]
+            v = d * np.median(np.abs(rec.dq[sub, j]))
+            mine = rec.direction[rows] == d
+            th = rec.q[rows[mine], j]
+            psi[mine] = np.stack(
+                [np.sin(th), np.cos(th), np.ones_like(th), np.full_like(th, d),
+                 np.full_like(th, v), rec.current[rows[mine], j]],
+                axis=1,
+            )  # fmt: skip
+            held.append(rec.q[sub])
+        out.append((j, psi.T @ psi, rows.size, np.concatenate(held).mean(axis=0)))
+    return out
+
+
+def test_moments_are_the_sums_over_the_steady_samples(rec):
+    want = _numpy_moments(rec)
+    got = sweep_moments(rec)
+    assert got.n_sweeps == len(want) == 14
+    for s, (j, moments, count, hold) in enumerate(want):
+        assert got.joint[s] == j and got.count[s] == count
+        np.testing.assert_allclose(got.moments[s], moments, rtol=1e-11, atol=1e-9)
+        np.testing.assert_allclose(got.hold[s], hold, rtol=0, atol=1e-12)
+
+
+def test_a_reused_buffer_leaks_nothing_into_the_next_pack(rec):
+    """Pack a long recording, then a shorter one into the same buffer: the moments of the
+    shorter one are those of a fresh pack (the stale tail is never read)."""
+    cut = int(np.flatnonzero(rec.joint == 3)[0])
+    short = Recording(*(getattr(rec, f)[:cut] for f in ("t", "q", "dq", "current", "joint",
+                      "direction")), rec.model, rec.gravity)  # fmt: skip
+    buffer = PackBuffer()
+    first, length = pack([rec, rec], buffer)
+    packed_moments(first, length)
+    packed, length = pack([short, short], buffer)
+    assert np.shares_memory(packed.samples, first.samples)  # reused, stale data behind
+    reused = packed_moments(packed, length)
+    fresh = sweep_moments(short)
+    S = fresh.n_sweeps
+    np.testing.assert_array_equal(np.asarray(reused.count)[0, :S], fresh.count)
+    assert not np.asarray(reused.count)[0, S:].any()
+    np.testing.assert_allclose(np.asarray(reused.moments)[1, :S], fresh.moments, rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(reused.hold)[1, :S], fresh.hold, rtol=1e-12)
+
+
+def test_a_recording_without_sweeps_is_one_clear_error(rec):
+    flat = Recording(
+        rec.t, rec.q, rec.dq, rec.current, np.full_like(rec.joint, -1),
+        np.zeros_like(rec.direction), rec.model, rec.gravity,
+    )  # fmt: skip
+    with pytest.raises(InputError, match="recording 0 has no sweep"):
+        pack([flat])
