@@ -51,8 +51,9 @@ from jaxcomp.identify.moments import (
     PackBuffer,
     Packed,
     SweepMoments,
+    on_cpu,
     pack,
-    packed_moments,
+    reduce_batch,
     sweep_moments,
 )
 from jaxcomp.recording import Recording
@@ -558,11 +559,12 @@ def _result(model, rec, sol, coef, joint, seconds) -> RobotParams:
     return _params(model, rec, sol, phase, phase_std, seconds)
 
 
-@partial(jax.jit, static_argnums=(0, 2))
-def _fit_packed(model: FitModel, p: Packed, length: int):
+@partial(jax.jit, static_argnums=(0, 2, 3))
+def _fit_packed(model: FitModel, p: Packed, length: int, sequential: bool):
     """Stacked packed recordings (leading batch axis) -> (Solution, coef, joint, count) of
-    each: moments, statistics and fit in one computation on the device."""
-    m = packed_moments.__wrapped__(p, length, STEADY_FRACTION, STEADY_TRIM)
+    each: moments, statistics and fit in one computation on the device (``sequential``: the
+    moments one recording after another, see ``moments.reduce_batch``)."""
+    m = reduce_batch(p, length, STEADY_FRACTION, STEADY_TRIM, sequential)
     st, coef = jax.vmap(_sweep_stats.__wrapped__, in_axes=(None, 0))(model, m)
     sol = jax.vmap(solve.__wrapped__, in_axes=(None, 0))(_key(model), st)
     return sol, coef, m.joint, m.count
@@ -610,7 +612,7 @@ def fit_each(
     more only contend for host memory bandwidth; 1 on a CPU). Raises
     ``FitError`` naming the recordings whose fit did not converge (no result then).
     """
-    accelerated = jax.default_backend() != "cpu"
+    accelerated = not on_cpu()
     batch = int(batch or (256 if accelerated else 8))
     workers = max(1, int(workers or (min(8, os.cpu_count() or 1) if accelerated else 1)))
     group = min(_GROUP, batch)
@@ -651,7 +653,7 @@ def fit_each(
             start = time.perf_counter()
             groups = [chunk[i : i + group] for i in range(0, len(chunk), group)]
             packed, length = _join(list(pool.map(send, groups)), batch)
-            result = _fit_packed(model, packed, length)  # dispatched: runs while we go on
+            result = _fit_packed(model, packed, length, not accelerated)  # async: runs on
             if pending is not None:
                 finish(*pending)
             pending = (chunk, result, start)
