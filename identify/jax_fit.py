@@ -422,14 +422,17 @@ def _key(model: FitModel) -> tuple:
 _BUCKET = 8  # sweeps are padded to a multiple of this, so few shapes get compiled
 
 
-def _padded(m: SweepMoments, size: int) -> SweepMoments:
-    extra = size - m.n_sweeps
-    return m._replace(
-        joint=np.r_[m.joint, np.zeros(extra, np.int64)],
-        hold=np.concatenate([m.hold, np.zeros((extra, m.hold.shape[1]))]),
-        moments=np.concatenate([m.moments, np.zeros((extra, 6, 6))]),
-        count=np.r_[m.count, np.zeros(extra, np.int64)],
-    )
+def _padded(m: SweepMoments, size: int, axis: int = 0) -> SweepMoments:
+    """``m`` with zero sweeps appended along its sweep ``axis`` (1 when stacked) up to
+    ``size``: a sweep of zero moments adds nothing to a fit."""
+
+    def pad(a: np.ndarray) -> np.ndarray:
+        a = np.asarray(a)
+        width = [(0, 0)] * a.ndim
+        width[axis] = (0, size - a.shape[axis])
+        return np.pad(a, width)
+
+    return m._replace(**{k: pad(getattr(m, k)) for k in ("joint", "hold", "moments", "count")})
 
 
 def _bucket(n: int) -> int:
@@ -565,8 +568,7 @@ def _fit_packed(model: FitModel, p: Packed, length: int, sequential: bool):
     each: moments, statistics and fit in one computation on the device (``sequential``: the
     moments one recording after another, see ``moments.reduce_batch``)."""
     m = reduce_batch(p, length, STEADY_FRACTION, STEADY_TRIM, sequential)
-    st, coef = jax.vmap(_sweep_stats.__wrapped__, in_axes=(None, 0))(model, m)
-    sol = jax.vmap(solve.__wrapped__, in_axes=(None, 0))(_key(model), st)
+    sol, coef = _fit_moments.__wrapped__(model, m)
     return sol, coef, m.joint, m.count
 
 
@@ -620,6 +622,7 @@ def fit_each(
     out: list[RobotParams] = []
     failed: list[int] = []
     model: FitModel | None = None
+    name = None  # the recordings' model
     bar = tqdm(desc="fitting", unit="rec", disable=not progress)
 
     def send(recs: list[Recording]) -> tuple[Packed, int]:
@@ -645,10 +648,9 @@ def fit_each(
     with ThreadPoolExecutor(workers) as pool:
         for chunk in _chunks(recordings, batch):
             if model is None:
-                model = fit_model(chunk[0].model)
-            if any(r.model != chunk[0].model for r in chunk) or (
-                pending and pending[0][0].model != chunk[0].model
-            ):
+                name = chunk[0].model
+                model = fit_model(name)
+            if any(r.model != name for r in chunk):
                 raise InputError("fit_each needs recordings of one robot model")
             start = time.perf_counter()
             groups = [chunk[i : i + group] for i in range(0, len(chunk), group)]
@@ -734,15 +736,7 @@ def fit_batch(
     b = w if batch is None else max(1, min(int(batch), w))
     b = -(-b // shards) * shards
     size = _bucket(moments.moments.shape[1])
-    extra = size - moments.moments.shape[1]
-
-    def pad_sweeps(a: np.ndarray) -> np.ndarray:
-        a = np.asarray(a)
-        return np.pad(a, [(0, 0), (0, extra)] + [(0, 0)] * (a.ndim - 2))
-
-    padded = moments._replace(
-        **{k: pad_sweeps(getattr(moments, k)) for k in ("joint", "hold", "moments", "count")}
-    )
+    padded = _padded(moments, size, axis=1)
     padded = padded._replace(
         payload_mass=np.asarray(padded.payload_mass, float),
         gravity=np.asarray(padded.gravity, float),

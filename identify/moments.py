@@ -112,26 +112,9 @@ def sweep_moments_batch(
         raise InputError(f"q, dq and current must have the same shape (W, T, n), got {q.shape}")
     lay = layout(joint, direction)
     S = lay.joint.size
-    if S == 0:
-        empty = np.zeros((w, 0))
-        return SweepMoments(
-            joint=empty.astype(np.int64),
-            hold=np.zeros((w, 0, n)),
-            moments=np.zeros((w, 0, 6, 6)),
-            count=empty.astype(np.int64),
-            gravity=np.broadcast_to(np.asarray(gravity, float), (w, 3)).copy(),
-            payload_mass=np.zeros(w),
-            payload_com=np.zeros((w, 3)),
-        )
-    rows, cols, hold_rows = lay.gather()
     S_pad, N, H, L = lay.sizes()
-    samples = np.zeros((w, 4, N))
-    samples[:, 0, : rows.size] = t[rows]
-    samples[:, 1, : rows.size] = q[:, rows, cols]
-    samples[:, 2, : rows.size] = dq[:, rows, cols]
-    samples[:, 3, : rows.size] = current[:, rows, cols]
-    hold = np.zeros((w, H, n))
-    hold[:, : hold_rows.size] = q[:, hold_rows]
+    samples, hold = np.zeros((w, 4, N)), np.zeros((w, H, n))
+    _fill(lay, t, q, dq, current, samples, hold)
     meta = {k: np.broadcast_to(v, (w, *v.shape[1:])) for k, v in _meta([lay], S_pad).items()}
     packed = Packed(
         samples=samples,
@@ -204,8 +187,9 @@ def _up(n: int, bucket: int) -> int:
 
 
 class Packed(NamedTuple):
-    """The swept-joint samples of a recording, what ``packed_moments`` reduces (host or device
-    arrays; a batch has a leading axis on every field).
+    """The swept-joint samples of recordings, what ``reduce_packed`` reduces (host or device
+    arrays; ``pack`` and ``packed_moments`` stack recordings along a leading axis, the shapes
+    below are one recording's).
 
     S sweeps of up to two passes (slot 0 the first, slot 1 the return). samples (4, N): t s,
     the swept joint's q rad, dq rad/s and current A, the passes back to back, zero-padded.
@@ -253,16 +237,6 @@ class Layout(NamedTuple):
             _up(int(self.held.sum()), _SAMPLE_BUCKET // HOLD_STRIDE),
             _up(int(self.length.max(initial=1)), _PASS_BUCKET),
         )
-
-    def gather(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Recording rows and swept-joint columns of the packed samples, and the hold rows."""
-        rows, cols, hold = [], [], []
-        for j, first, length in zip(self.joint, self.first, self.length, strict=True):
-            for f, n in zip(first, length, strict=True):
-                rows.append(np.arange(f, f + n))
-                hold.append(np.arange(f, f + n, HOLD_STRIDE))
-                cols.append(np.full(n, j))
-        return np.concatenate(rows), np.concatenate(cols), np.concatenate(hold)
 
 
 def layout(joint: np.ndarray, direction: np.ndarray) -> Layout:
@@ -331,6 +305,23 @@ def _meta(lays: Sequence[Layout], S: int) -> dict[str, np.ndarray]:
     return out
 
 
+def _fill(lay: Layout, t, q, dq, current, samples: np.ndarray, hold: np.ndarray) -> None:
+    """Copy the passes of ``lay`` into ``samples`` (..., 4, N) and ``hold`` (..., H, n), in
+    packed order; ``q``, ``dq``, ``current`` (..., T, n) and ``t`` (T,) of one recording or of
+    worlds that share the layout (a leading axis). Strided slice copies, no index arrays."""
+    at = held = 0
+    for j, first, length in zip(lay.joint.tolist(), lay.first, lay.length, strict=True):
+        for f, m in zip(first.tolist(), length.tolist(), strict=True):
+            part = slice(f, f + m)
+            samples[..., 0, at : at + m] = t[part]
+            samples[..., 1, at : at + m] = q[..., part, j]
+            samples[..., 2, at : at + m] = dq[..., part, j]
+            samples[..., 3, at : at + m] = current[..., part, j]
+            h = -(-m // HOLD_STRIDE)
+            hold[..., held : held + h, :] = q[..., f : f + m : HOLD_STRIDE, :]
+            at, held = at + m, held + h
+
+
 def pack(recs: Sequence[Recording], buffer: PackBuffer | None = None) -> tuple[Packed, int]:
     """The swept-joint samples of recordings, stacked (a leading axis on every field of the
     ``Packed``; host arrays, padded to the largest), and the pass length (samples) to reduce
@@ -347,17 +338,7 @@ def pack(recs: Sequence[Recording], buffer: PackBuffer | None = None) -> tuple[P
     k = len(recs)
     samples, hold = (buffer or PackBuffer()).take(k, N, H, n)
     for i, (rec, lay) in enumerate(zip(recs, lays, strict=True)):
-        at = held = 0
-        for j, first, length in zip(lay.joint.tolist(), lay.first, lay.length, strict=True):
-            for f, m in zip(first.tolist(), length.tolist(), strict=True):
-                part = slice(f, f + m)
-                samples[i, 0, at : at + m] = rec.t[part]
-                samples[i, 1, at : at + m] = rec.q[part, j]
-                samples[i, 2, at : at + m] = rec.dq[part, j]
-                samples[i, 3, at : at + m] = rec.current[part, j]
-                h = -(-m // HOLD_STRIDE)
-                hold[i, held : held + h] = rec.q[f : f + m : HOLD_STRIDE]
-                at, held = at + m, held + h
+        _fill(lay, rec.t, rec.q, rec.dq, rec.current, samples[i], hold[i])
     packed = Packed(
         samples=samples,
         hold=hold,
