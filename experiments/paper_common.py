@@ -42,7 +42,7 @@ from jaxcomp.identify.plan import CalibrationPlan, default_plan  # noqa: E402
 from jaxcomp.identify.recorder import record  # noqa: E402
 from jaxcomp.recording import Recording  # noqa: E402
 from jaxcomp.robot import Robot, load_robot  # noqa: E402
-from jaxcomp.robot_params import RobotParams, write_json_atomic  # noqa: E402
+from jaxcomp.robot_params import RobotParams, json_ready, write_json_atomic  # noqa: E402
 
 ARM = load_robot("gen3_lite")
 MOBILE = load_robot("mobile_gen3_lite")
@@ -172,26 +172,9 @@ def add_control_options(p: argparse.ArgumentParser) -> None:
 # ----------------------------------------------------------------------------- output
 
 
-def plain(value: Any) -> Any:
-    """``value`` with numpy arrays and scalars as lists and floats, non-finite floats None."""
-    if isinstance(value, dict):
-        return {str(k): plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return plain(value.tolist())
-    if isinstance(value, np.bool_ | bool):
-        return bool(value)
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, float | np.floating):
-        return float(value) if math.isfinite(value) else None
-    return value
-
-
 def write_results(path: Path, results: dict) -> Path:
     """Write ``results`` as JSON (atomically)."""
-    return write_json_atomic(path, plain(results))
+    return write_json_atomic(path, json_ready(results))
 
 
 def save_figure(fig, path: Path) -> Path:

@@ -345,9 +345,8 @@ def build_model(robot: Robot, payload: bool = False) -> mujoco.MjModel:
 
 
 def _ee_site_name(robot: Robot) -> str:
-    """The end-effector site's name (custom text ``jaxcomp_end_effector``, else
-    "end_effector"), checked to exist."""
-    name = robot.custom_text("jaxcomp_end_effector") or "end_effector"
+    """The end-effector site's name (``Robot.end_effector``), checked to exist."""
+    name = robot.end_effector
     if mujoco.mj_name2id(robot.model, mujoco.mjtObj.mjOBJ_SITE, name) < 0:
         raise ModelError(f"the model has no end-effector site {name!r}")
     return name
@@ -917,7 +916,8 @@ class MjxSimulator:
         no_fault = np.full(wp, -1, np.int32)
         carry = (q0, zeros, zeros, np.zeros((wp, 3), self.dtype), zeros, pstate, q0)
         carry = put(carry + (no_fault, np.zeros(wp, np.int32)))
-        key = ("closed", policy, init, chunk, every, _signature(fields, params, carry, ref))
+        # the compiled step sees (chunk, m) rows of the reference, never its length
+        key = ("closed", policy, init, chunk, every, _signature(fields, params, carry, ref[0]))
         if key not in self._compiled:
             self._compiled[key] = self._build_closed_loop(policy, init, every)
         fn = self._compiled[key]

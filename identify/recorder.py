@@ -32,8 +32,8 @@ from jaxcomp.robot_params import arm_joint_indices, write_json_atomic
 
 #: The plan being recorded, kept beside the writer's part files to check a resume.
 PLAN_FILE = "plan.json"
-#: Recorded direction of each kind of move of ``CalibrationPlan.moves``.
-_DIRECTION = {"via": 0, "start": 0, "up": +1, "down": -1}
+#: Recorded direction (+1, -1; 0 outside sweeps) of each kind of move of ``CalibrationPlan.moves``.
+MOVE_DIRECTION = {"via": 0, "start": 0, "up": +1, "down": -1}
 
 
 def _check_metadata(model: str, n: int, gravity, payload_mass, payload_com) -> None:
@@ -160,7 +160,7 @@ def record(
                     writer.end()
                 writer.begin(i)
                 current = i
-            direction = _DIRECTION[kind]  # from the commanded motion
+            direction = MOVE_DIRECTION[kind]  # from the commanded motion
             joint = plan.sweeps[i].joint if direction else -1
             arm.move_to(
                 target, speed, on_state=recorder(joint, direction), accel=accel, settle=settle

@@ -245,6 +245,20 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
+def json_ready(value: Any) -> Any:
+    """Plain JSON data: numpy arrays and scalars as Python lists and numbers, keys as str,
+    non-finite floats (NaN, inf) as None."""
+    if isinstance(value, Mapping):
+        return {str(k): json_ready(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | np.ndarray):
+        return [json_ready(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
 def write_json_atomic(path: str | Path, data: Any) -> Path:
     """Write ``data`` as JSON to ``path`` via a temp file and ``os.replace`` (never partial)."""
     return write_text_atomic(path, json.dumps(data, indent=2) + "\n")

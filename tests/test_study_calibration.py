@@ -1,6 +1,6 @@
 """`jaxcomp study calibration`: truths, plan signals, batched moments and fits, the report.
 
-MJX compiles for ~20-30 s on a 2-core CPU: one in-process simulator (``_simulator``) serves
+MJX compiles for ~20-30 s on a 2-core CPU: one in-process simulator (``study.simulator``) serves
 every run here. The unmarked runs use a tiny plan (joints 1-4, +-25 deg at 60 deg/s, 14 s)
 in 2 worlds recorded at 100 Hz; ``--plan short`` (26 s, every joint) in 4 worlds is slow.
 """
@@ -250,7 +250,7 @@ def test_batched_moments_and_fits_are_the_single_recording_ones(robot, tiny_plan
     what ``sweep_moments`` and ``jax_fit.fit`` give on the recording of a world."""
     truth = sc.draw_truth(robot, 1, SEED, sc.TruthSpread())
     signal = sc.plan_signal(sc.load_study_plan(robot, tiny_plan), sc.start_pose(robot))
-    sim = sc._simulator(None)
+    sim = sc.simulator(None)
     res = sc.simulate(sim, truth, signal, seed=SEED, every=10, world_batch=1, keep=1)
     rec = res.recordings[0]
     single, batched = sweep_moments(rec), world_moments(res.moments, 0)
@@ -343,7 +343,7 @@ def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, tiny_p
         np.testing.assert_array_equal(seg.start[k], signal.q_ref[f - 1] if f else start)
 
     truth = sc.draw_truth(robot, 2, SEED, sc.TruthSpread(noise=0.0))
-    sim = sc._simulator(None)
+    sim = sc.simulator(None)
     kw = dict(seed=SEED, every=10, keep=2)
     turn = sc.simulate(sim, truth, signal, world_batch=1, **kw)
     side = sc.simulate(sim, truth, signal, world_batch=2, parallel=True, **kw)

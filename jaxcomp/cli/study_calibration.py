@@ -43,10 +43,9 @@ from typing import Any, NamedTuple
 import click
 import numpy as np
 
-from jaxcomp.cli.study import study
+from jaxcomp.cli.study import MODEL, check_out_dir, simulator, study
 from jaxcomp.errors import InputError
 
-MODEL = "gen3_lite"
 STUDY_FILE = "study.json"
 WORLDS_FILE = "worlds.npz"
 FIGURES = ("errors.png", "coverage.png")
@@ -56,7 +55,6 @@ PLANS = ("default", "short")
 #: Seed streams: SeedSequence([seed, stream, ...]).
 _TRUTH_STREAM, _NOISE_STREAM = 1, 2
 #: Recorded direction of each kind of move of ``CalibrationPlan.moves`` (as identify.recorder).
-_DIRECTION = {"via": 0, "start": 0, "up": 1, "down": -1}
 #: |error| < _Z95 std holds 95 % of the time when the reported std are right.
 _Z95 = 1.96
 
@@ -197,6 +195,7 @@ class PlanSignal(NamedTuple):
 def plan_signal(plan: Any, start: np.ndarray) -> PlanSignal:
     """The ``PlanSignal`` of ``plan`` from the pose ``start`` (n,) rad."""
     from jaxcomp.hardware.mjx_sim import Move, reference_trajectory
+    from jaxcomp.identify.recorder import MOVE_DIRECTION
 
     pos = np.asarray(start, float)
     parts, labels = [], []
@@ -204,7 +203,7 @@ def plan_signal(plan: Any, start: np.ndarray) -> PlanSignal:
         ref = reference_trajectory([Move(target, speed, accel, settle)], pos)
         if len(ref):
             pos = ref[-1].copy()
-            d = _DIRECTION[kind]
+            d = MOVE_DIRECTION[kind]
             parts.append(ref)
             labels.append(np.tile([plan.sweeps[i].joint if d else -1, d, i], (len(ref), 1)))
     lab = np.concatenate(labels)
@@ -586,17 +585,16 @@ def jax_estimates(
     ran the plan without a fault (a real arm would have stopped)."""
     from jaxcomp.identify.evaluate import gravity_current_error_batch
     from jaxcomp.identify.jax_fit import identified, phase_shift
-    from jaxcomp.identify.moments import world_moments
 
     sol, n, w = fits.solution, model.n, truth.worlds
     lin = 3 * n
     true = jax_truth_vector(model, truth)
+    joint = np.where(simulated.moments.count > 0, simulated.moments.joint, -1)  # -1: empty
     phases = []
     for i in range(w):
-        m = world_moments(simulated.moments, i, keep_empty=True)
         cov = sol.cov[i, lin:, lin:]
-        fit_phase = phase_shift(model, fits.coef[i], m.joint, sol.com[i], cov)
-        true_phase, _ = phase_shift(model, fits.coef[i], m.joint, true[i, lin:], cov)
+        fit_phase = phase_shift(model, fits.coef[i], joint[i], sol.com[i], cov)
+        true_phase, _ = phase_shift(model, fits.coef[i], joint[i], true[i, lin:], cov)
         phases.append((fit_phase[0], fit_phase[1], true_phase))
     phase, phase_std, true_phase = (np.array(x) for x in zip(*phases, strict=True))
     ident = identified(model, sol.excited, fits.std)
@@ -815,7 +813,7 @@ def run_study(
     robot = load_robot(MODEL)
     the_plan = load_study_plan(robot, plan)
     signal = plan_signal(the_plan, start_pose(robot))
-    sim = _simulator(devices)
+    sim = simulator(devices)
     model = fit_model(robot)
     truth = draw_truth(robot, worlds, seed, spread)
     backend, mesh = jax.default_backend(), sim.mesh
@@ -955,66 +953,27 @@ def _check_counts(worlds, every, baseline_sample, poses, world_batch, fit_batch)
             raise InputError(f"{name} must be an integer >= {low}, got {value}")
 
 
-_SIMULATORS: dict[int | None, Any] = {}
-
-
-def _simulator(devices: int | None) -> Any:
-    """One ``MjxSimulator`` per device count per process: its compiled programs are kept."""
-    from jaxcomp.hardware.mjx_sim import MjxSimulator, batch_mesh
-
-    if devices not in _SIMULATORS:
-        _SIMULATORS[devices] = MjxSimulator(MODEL, mesh=batch_mesh(devices))
-    return _SIMULATORS[devices]
-
-
 # ----------------------------------------------------------------------------- outputs
-def check_out_dir(out: Path) -> Path:
-    """Create ``out`` if needed and check that files can be written in it (InputError)."""
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} exists and is not a folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=out)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as exc:
-        raise InputError(f"cannot write to --out {out}: {exc.strerror or exc}") from None
-    return out
-
-
 def write_outputs(out: Path, report: dict, arrays: dict) -> list[Path]:
     """Write the figures, ``worlds.npz`` and ``study.json`` (last) into ``out``.
 
     Everything is written to a staging folder inside ``out`` first and moved in by
     ``os.replace`` only once all of it is written: an error leaves ``out`` as it was.
     """
-    from jaxcomp.robot_params import write_json_atomic
+    from jaxcomp.robot_params import json_ready, write_json_atomic
 
     stage = Path(tempfile.mkdtemp(prefix=".study-calibration.", dir=out))
     try:
         plot_errors(report, arrays, stage / FIGURES[0])
         plot_coverage(report, arrays, stage / FIGURES[1])
         np.savez_compressed(stage / WORLDS_FILE, **arrays)
-        write_json_atomic(stage / STUDY_FILE, _json_ready(report))
+        write_json_atomic(stage / STUDY_FILE, json_ready(report))
         names = [*FIGURES, WORLDS_FILE, STUDY_FILE]
         for name in names:
             os.replace(stage / name, out / name)
         return [out / name for name in names]
     finally:
         shutil.rmtree(stage, ignore_errors=True)
-
-
-def _json_ready(value: Any) -> Any:
-    """Plain JSON: numpy to Python, NaN and inf to null."""
-    if isinstance(value, dict):
-        return {str(k): _json_ready(v) for k, v in value.items()}
-    if isinstance(value, list | tuple | np.ndarray):
-        return [_json_ready(v) for v in value]
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 def plot_errors(report: dict, arrays: dict, path: Path) -> Path:

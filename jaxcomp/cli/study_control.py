@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import math
 import platform
 import time
@@ -38,7 +37,7 @@ from typing import TYPE_CHECKING, Any
 import click
 import numpy as np
 
-from jaxcomp.cli.study import study
+from jaxcomp.cli.study import MODEL, check_out_dir, simulator, study
 from jaxcomp.errors import InputError
 
 if TYPE_CHECKING:  # heavy imports happen inside the functions (quick --help)
@@ -57,7 +56,6 @@ TRACK_START = 2.0  # the half circle starts here
 REFERENCE_COLUMNS = 12  # target pos (3) | vel (3) | acc (3) | w_track | w_base | w_push
 POSES = 64  # random poses of the gravity-current model error
 
-MODEL = "gen3_lite"
 STUDY_JSON = "study.json"
 FIGURES = ("tracking.png", "compliance.png")
 
@@ -294,7 +292,6 @@ def run_study(
     noise: float = 0.05,
     push: str = "horizontal",
     devices: int | None = None,
-    chunk_steps: int | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
     """The study's numbers as a JSON-able dict (see the module doc; ``gains`` default
@@ -305,6 +302,7 @@ def run_study(
     from jaxcomp.control import ImpedanceGains
     from jaxcomp.hardware.mjx_sim import SETTLE_STEPS, fault_names
     from jaxcomp.robot import load_robot
+    from jaxcomp.robot_params import json_ready
 
     t_begin = time.perf_counter()
     worlds, passes = int(worlds), int(passes)
@@ -336,7 +334,7 @@ def run_study(
     stiffness = np.asarray(gains.stiffness, float)
     expected = force * (direction**2 / stiffness).sum(axis=1)  # m along u: F u^T K^-1 u
     policy, init = impedance_policy(MODEL, gains)
-    sim = _simulator(devices, chunk_steps)
+    sim = simulator(devices)
     compiled_before = sim.compile_seconds
     bar = tqdm(total=steps, unit="step", desc=f"{worlds} worlds", disable=not progress)
 
@@ -383,7 +381,7 @@ def run_study(
         "host": platform.node(),
         "config": {
             "model": MODEL,
-            "gains": _jsonable(dataclasses.asdict(gains)),
+            "gains": json_ready(dataclasses.asdict(gains)),
             "force_N": force,
             "push_direction": push,
             "tracking_duration_s": duration,
@@ -431,24 +429,6 @@ def run_study(
             "world_steps_per_s": worlds * (steps + SETTLE_STEPS) / run_s if run_s > 0 else None,
         },
     }
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, tuple | list | np.ndarray):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
-
-
-@functools.cache
-def _simulator(devices: int | None, chunk_steps: int | None):
-    """One ``MjxSimulator`` per configuration per process (its compiled programs are kept)."""
-    from jaxcomp.hardware.mjx_sim import MjxSimulator, batch_mesh
-
-    return MjxSimulator(MODEL, mesh=batch_mesh(devices), chunk_steps=chunk_steps)
 
 
 # ----------------------------------------------------------------------------- outputs
@@ -501,22 +481,9 @@ def write_figures(report: dict, out: Path) -> list[Path]:
 
 def write_report(report: dict, out: Path) -> Path:
     """DIR/study.json, written atomically (NaN as null)."""
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / STUDY_JSON
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(_nan_to_none(report), indent=1))
-    tmp.replace(path)
-    return path
+    from jaxcomp.robot_params import json_ready, write_json_atomic
 
-
-def _nan_to_none(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _nan_to_none(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_nan_to_none(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
+    return write_json_atomic(out / STUDY_JSON, json_ready(report))
 
 
 def _mm(stats: dict, key: str) -> str:
@@ -605,6 +572,7 @@ def control(
     """
     from jaxcomp.control import ImpedanceGains
 
+    out = check_out_dir(Path(out_dir))  # before minutes of simulation
     report = run_study(
         worlds,
         seed,
@@ -620,7 +588,6 @@ def control(
         devices=devices,
     )
     report["config"]["gains_preset"] = preset
-    out = Path(out_dir)
     path = write_report(report, out)
     write_figures(report, out)
     sm, tm = report["summary"], report["timing_s"]
