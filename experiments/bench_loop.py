@@ -41,6 +41,7 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+from paper_common import after, ramped_push  # noqa: E402
 
 from jaxcomp.control import ImpedanceGains, make_impedance_controller  # noqa: E402
 from jaxcomp.control.loop import arm_model, arm_params, run_control  # noqa: E402
@@ -86,22 +87,6 @@ def simulator(robot, truth: TrueRobot, realtime: bool = False) -> Simulator:
     params = dataclasses.replace(truth.params, model=robot.name)
     true = TrueRobot(params, truth.current_noise, truth.viscous, truth.seed)
     return Simulator(robot, true, seed=truth.seed, realtime=realtime)
-
-
-def ramped_push(sim: Simulator, start: float, length: float, force) -> float:
-    """Five pushes of force / 5, 20 ms apart (a 0.1 s ramp); returns the release time (s)."""
-    for k in range(5):
-        sim.push(start + 0.02 * k, length, np.asarray(force, float) / 5)
-    return start + 0.08 + length
-
-
-def after(t, values, release, threshold) -> float:
-    """s after ``release`` at which ``values`` last exceeded ``threshold`` (inf: still at the
-    end of the run)."""
-    late = np.flatnonzero((t > release) & (values > threshold))
-    if late.size and late[-1] == len(t) - 1:
-        return math.inf
-    return float(t[late[-1]] - release) if late.size else 0.0
 
 
 # ----------------------------------------------------------------------------- lock step

@@ -32,7 +32,6 @@ HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
-from bench_loop import after, ramped_push  # noqa: E402, F401  (re-exported for the scripts)
 
 from jaxcomp.control import ImpedanceGains  # noqa: E402
 from jaxcomp.control.loop import arm_params  # noqa: E402
@@ -59,6 +58,22 @@ DPI = 100
 
 
 # ----------------------------------------------------------------------------- gains
+
+
+def ramped_push(sim: Simulator, start: float, length: float, force) -> float:
+    """Five pushes of force / 5, 20 ms apart (a 0.1 s ramp); returns the release time (s)."""
+    for k in range(5):
+        sim.push(start + 0.02 * k, length, np.asarray(force, float) / 5)
+    return start + 0.08 + length
+
+
+def after(t, values, release, threshold) -> float:
+    """s after ``release`` at which ``values`` last exceeded ``threshold`` (inf: still at the
+    end of the run)."""
+    late = np.flatnonzero((t > release) & (values > threshold))
+    if late.size and late[-1] == len(t) - 1:
+        return math.inf
+    return float(t[late[-1]] - release) if late.size else 0.0
 
 
 def impedance_gains(name: str) -> ImpedanceGains:
