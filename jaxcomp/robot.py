@@ -5,9 +5,10 @@ of ``jaxcomp.dynamics`` that close over the model's constants. Units: q in rad (
 (slide), dq in rad/s or m/s, torques in N m or N, positions in m, world (base) frame.
 """
 
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from functools import cached_property
 from pathlib import Path
+from typing import Any, TypeVar
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +20,8 @@ from jaxcomp.errors import InputError, ModelError
 from jaxcomp.kinematic_tree import KinematicTree, tree_from_mujoco
 from jaxcomp.models import BUILTIN
 from jaxcomp.params import InertialParams, add_point_mass
+
+T = TypeVar("T")
 
 
 def builtin_models() -> list[str]:
@@ -69,7 +72,7 @@ class Robot:
         self.name = name
         self.source = source
         self.tree: KinematicTree = tree_from_mujoco(model)
-        self._jitted: dict[str, Callable] = {}
+        self._cache: dict[Hashable, Any] = {}
 
     def __repr__(self) -> str:
         return f"Robot({self.name!r}, joints={list(self.joint_names)})"
@@ -227,10 +230,17 @@ class Robot:
         return params
 
     # ----------------------------------------------------------------- dynamics
+    def cached(self, key: Hashable, build: Callable[[], T]) -> T:
+        """``build()``, made once per robot and key and kept on the robot (no global caches).
+
+        For anything derived from this robot's model alone: compiled functions, plans, gains.
+        """
+        if key not in self._cache:
+            self._cache[key] = build()
+        return self._cache[key]
+
     def _fn(self, key: str, build: Callable[[], Callable]) -> Callable:
-        if key not in self._jitted:
-            self._jitted[key] = jax.jit(build())
-        return self._jitted[key]
+        return self.cached(("jit", key), lambda: jax.jit(build()))
 
     def forward_kinematics(self, q) -> dynamics.Frames:
         """World frames of all links and joints (see ``dynamics.Frames``)."""
