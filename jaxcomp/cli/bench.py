@@ -40,35 +40,35 @@ class Benchmark:
 BENCHMARKS: dict[str, Benchmark] = {
     "dynamics": Benchmark(
         "bench_dynamics.py",
-        "issue 2: one jitted gravity + Jacobian + mass matrix call vs pinocchio (median <= 40 us,"
-        " p99 <= 150 us); vmapped gravity poses/s (>= 1e6)",
+        "dynamics: one jitted gravity + Jacobian + mass matrix call vs pinocchio (target: median"
+        " <= 40 us, p99 <= 150 us); vmapped gravity poses/s (target >= 1e6)",
         quick=("--repeats", "300", "--poses", "2000"),
     ),
     "sim": Benchmark(
         "bench_sim.py",
-        "issue 3: lock-step simulator speed in multiples of real time (>= 20x)",
+        "simulator: lock-step speed in multiples of real time (target >= 20x)",
         quick=("--seconds", "0.5", "--repeats", "1"),
     ),
     "fit": Benchmark(
         "bench_fit.py",
-        "issue 4: one ~230 000-sample recording fitted (<= 1 s); --each batch vs the scipy loop",
+        "fit: one ~230 000-sample recording fitted (target <= 1 s); --each batch vs the scipy loop",
         quick=("--count", "4", "--scipy-count", "1", "--pool", "4"),
     ),
     "control": Benchmark(
         "bench_control.py",
-        "issue 5: jitted controller step vs pinocchio + numpy (median <= 50 us, p99 <= 150 us)",
+        "controller: jitted step vs pinocchio + numpy (target: median <= 50 us, p99 <= 150 us)",
         quick=("--repeats", "300", "--block", "100"),
     ),
     "loop": Benchmark(
         "bench_loop.py",
-        "issue 5: the 1 kHz loop in lock step (>= 5x real time) and paced to the wall clock "
-        "for 60 s (< 0.1 % missed deadlines)",
+        "control loop: 1 kHz in lock step (target >= 5x real time) and paced to the wall clock "
+        "for 60 s (target < 0.1 % missed deadlines)",
         full=("--repeats", "3", "--realtime", "60"),
         quick=("--repeats", "1"),
     ),
     "mjx": Benchmark(
         "bench_mjx.py",
-        "issue 6: MJX world-steps/s of a batched sweep plan, float64 (>= 5e6 on one GPU)",
+        "MJX: world-steps/s of a batched sweep plan, float64 (target >= 5e6 on one GPU)",
         full=("--worlds", "64", "--steps", "1000"),
         quick=("--worlds", "2", "--steps", "50", "--settle", "10"),
         gpu=("--worlds", "32768", "--steps", "2000", "--every", "10"),
@@ -236,7 +236,7 @@ def run_benchmark(
 def bench(
     out_dir: Path, only: tuple[str, ...], quick: bool, folder: Path | None, timeout: float
 ) -> None:
-    """Run the benchmarks of every issue and write one report (markdown table and JSON).
+    """Run every benchmark and write one report (markdown table and JSON).
 
     Each benchmark runs in its own process, one after another, with its figures taken from
     its --json output; the report names the machine (CPU, cores, memory, JAX backend and
