@@ -12,7 +12,7 @@ import jaxcomp
 from jaxcomp.cli import cli
 from jaxcomp.identify import jax_fit
 from jaxcomp.identify.baseline import fit_baseline
-from jaxcomp.identify.plan import default_plan
+from jaxcomp.identify.plan_design import default_plan
 from jaxcomp.recording import Recording
 from jaxcomp.robot_params import RobotParams
 

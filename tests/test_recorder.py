@@ -1,4 +1,5 @@
-"""Calibration plans (identify/plan.py) and recording them (identify/recorder.py)."""
+"""Calibration plans (identify/plan.py, identify/plan_design.py) and recording them
+(identify/recorder.py)."""
 
 import json
 import math
@@ -18,12 +19,11 @@ from jaxcomp.identify.plan import (
     UPPER,
     CalibrationPlan,
     Sweep,
-    default_plan,
     load_plan,
     plan_for_joints,
     plan_from_dict,
-    plan_issues,
 )
+from jaxcomp.identify.plan_design import default_plan, plan_issues
 from jaxcomp.identify.recorder import record
 from jaxcomp.recording import load_recording, recover
 
