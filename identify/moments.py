@@ -25,9 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcomp.constants import STANDARD_GRAVITY
 from jaxcomp.errors import InputError
 from jaxcomp.identify.bins import MEDIAN_STRIDE, STEADY_FRACTION, STEADY_TRIM
-from jaxcomp.recording import STANDARD_GRAVITY, Recording
+from jaxcomp.recording import Recording
 
 
 class SweepMoments(NamedTuple):
