@@ -88,6 +88,19 @@ def test_phase_shift_matches_the_truth_phase(robot, truth, synthetic_fit):
     assert np.abs(phase[1:5]).max() > np.deg2rad(0.2)  # the truth has a phase shift to find
 
 
+def test_fit_models_are_kept_on_the_robot_and_equal_by_content(robot, tmp_path):
+    """Equal models share compiled fits; an edited model of the same name does not."""
+    assert jax_fit.fit_model(robot) is jax_fit.fit_model(robot)
+    assert jax_fit.fit_model(robot) == jax_fit.fit_model("gen3_lite")
+    text = robot.source.read_text()
+    edited = tmp_path / "gen3_lite.xml"
+    edited.write_text(text.replace('mass="', 'mass="1', 1))
+    assert edited.read_text() != text
+    other = jaxcomp.load_robot(edited)
+    assert other.name == robot.name
+    assert jax_fit.fit_model(other) != jax_fit.fit_model(robot)
+
+
 def test_two_mountings_and_a_payload_identify_every_ratio(robot, truth, sweeps):
     upright = synthetic.recording(robot, truth, sweeps, seed=2)
     tilted = synthetic.recording(
