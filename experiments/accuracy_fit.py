@@ -21,7 +21,7 @@ from jaxcomp.hardware import Simulator, TrueRobot
 from jaxcomp.identify import jax_fit
 from jaxcomp.identify.baseline import fit_baseline
 from jaxcomp.identify.evaluate import gravity_current_error, random_poses
-from jaxcomp.identify.plan import default_plan
+from jaxcomp.identify.plan_design import default_plan
 from jaxcomp.identify.recorder import record
 
 

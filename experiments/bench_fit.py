@@ -48,7 +48,7 @@ import jaxcomp  # noqa: E402
 from jaxcomp.hardware import Simulator, TrueRobot  # noqa: E402
 from jaxcomp.identify import jax_fit  # noqa: E402
 from jaxcomp.identify.baseline import fit_baseline  # noqa: E402
-from jaxcomp.identify.plan import default_plan  # noqa: E402
+from jaxcomp.identify.plan_design import default_plan  # noqa: E402
 from jaxcomp.identify.recorder import record  # noqa: E402
 from jaxcomp.recording import Recording  # noqa: E402
 

@@ -37,7 +37,8 @@ from jaxcomp.control import ImpedanceGains  # noqa: E402
 from jaxcomp.control.loop import arm_params  # noqa: E402
 from jaxcomp.hardware import Simulator, TrueRobot  # noqa: E402
 from jaxcomp.identify import jax_fit  # noqa: E402
-from jaxcomp.identify.plan import CalibrationPlan, default_plan  # noqa: E402
+from jaxcomp.identify.plan import CalibrationPlan  # noqa: E402
+from jaxcomp.identify.plan_design import default_plan  # noqa: E402
 from jaxcomp.identify.recorder import record  # noqa: E402
 from jaxcomp.recording import Recording  # noqa: E402
 from jaxcomp.robot import Robot, load_robot  # noqa: E402

@@ -1,1 +1,13 @@
-"""Identification of current/torque ratios, friction losses and centre-of-mass errors."""
+"""Identification of current/torque ratios, friction losses and centre-of-mass errors.
+
+- ``plan``: calibration plans (sweeps, holds, speeds) and their JSON file;
+- ``plan_design``: the paper's plan, its held poses chosen on the robot's model;
+- ``recorder``: recording a plan on an ``Arm`` into a recording (``jaxcomp.recording``);
+- ``bins``: the steady samples of a sweep and their angle-bin means;
+- ``moments``: sweep moments, a recording reduced exactly for the joint fit;
+- ``jax_fit``: the joint JAX fit; ``baseline``: the paper's fit (scipy, pinocchio);
+- ``evaluate``: errors of fitted params against a known truth; ``plots``: calibration plots.
+
+Identification reads recordings and writes a params file (``jaxcomp.robot_params``), the only
+thing the controller takes from it.
+"""

@@ -40,8 +40,6 @@ from jaxcomp.urdf import to_urdf
 
 #: A sweep excites its joint when the model's gravity torque amplitude reaches this, N m.
 AMPLITUDE_THRESHOLD = 0.05
-#: Site the payload hangs from when the model names none (custom text jaxcomp_end_effector).
-END_EFFECTOR = "end_effector"
 #: Fewest angles with both directions for a phase fit.
 MIN_PAIRS = 3
 
@@ -136,22 +134,6 @@ def _ratio_friction(
 
 
 # ----------------------------------------------------------------------------- model
-def _with_point_mass(
-    mass: np.ndarray, com: np.ndarray, inertia: np.ndarray, b: int, m: float, p: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Body ``b``'s inertials with a point mass m kg at p (body frame, m) merged in."""
-    mass, com, inertia = mass.copy(), com.copy(), inertia.copy()
-    total = mass[b] + m
-    c = (mass[b] * com[b] + m * p) / total
-
-    def shift(mi, d):
-        return mi * (d @ d * np.eye(3) - np.outer(d, d))
-
-    inertia[b] = inertia[b] + shift(mass[b], com[b] - c) + shift(m, p - c)
-    mass[b], com[b] = total, c
-    return mass, com, inertia
-
-
 class _PinocchioGravity:
     """A pinocchio model of ``robot`` (``to_urdf`` of its nominal inertials, payload merged into
     the end-effector site's body) under the recording's gravity; COMs then move in place.
@@ -161,16 +143,11 @@ class _PinocchioGravity:
 
     def __init__(self, robot: Robot, rec: Recording):
         tree = robot.tree
-        mass, com, inertia = (np.asarray(x, dtype=float) for x in tree.nominal)
+        inertial = InertialParams(*(np.asarray(x, dtype=float) for x in tree.nominal))
         if rec.payload_mass > 0:
-            site = robot.custom_text("jaxcomp_end_effector") or END_EFFECTOR
-            s = robot.site_index(site)
-            point = tree.site_pos[s] + tree.site_rot[s] @ rec.payload_com
-            b = int(tree.site_body[s])
-            mass, com, inertia = _with_point_mass(
-                mass, com, inertia, b, float(rec.payload_mass), point
-            )
-        model = pin.buildModelFromXML(to_urdf(tree, InertialParams(mass, com, inertia)))
+            payload = robot.with_payload(inertial, float(rec.payload_mass), rec.payload_com)
+            inertial = InertialParams(*(np.asarray(x, dtype=float) for x in payload))
+        model = pin.buildModelFromXML(to_urdf(tree, inertial))
         model.gravity.linear = np.asarray(rec.gravity, dtype=float)
         self.model, self.data = model, model.createData()
         names = [tree.joint_names[i] for i in arm_joint_indices(robot)]

@@ -1,17 +1,30 @@
-"""The joint fit: ratio, friction and centre-of-mass offsets of all joints at once, in JAX.
+"""The joint fit: ratio, friction, viscous term and centre-of-mass offsets of all joints at once.
 
-Model (paper Eq. 13 with the gravity model of ``jaxcomp.dynamics``): in a steady sweep of
-joint j in direction d the measured current is
+Model (paper Eq. 13 with a viscous term and the gravity model of ``jaxcomp.dynamics``): in a
+steady pass of joint j in direction d at pass velocity v (rad/s) the measured current is
 
-    c = r_j tau_j(q; delta) + l_j d,      tau_j(q; delta) = tau0_j(q) + a_j(q) . delta
+    c = r_j tau_j(q; delta) + l_j d + b_j v,      tau_j(q; delta) = tau0_j(q) + a_j(q) . delta
 
 where tau is the gravity torque the actuator holds (N m), r_j the current/torque ratio
-(A/(N m)), l_j the friction loss (A) and delta the centre-of-mass offsets (m, each moving
-link's own frame) of every link. Gravity torque is linear in the offsets, so tau0 and the
-regressor a are evaluated once per angle bin (``identify.bins``), and the least-squares loss
-over all bins of all sweeps reduces to per-joint sufficient statistics (a 2 + 3L square matrix
-per joint): a Gauss-Newton / Levenberg-Marquardt iteration costs the same for 10^3 or 10^6
-samples.
+(A/(N m)), l_j the friction loss (A), b_j the viscous term (A s/rad) and delta the
+centre-of-mass offsets (m, each moving link's own frame) of every moving link. One
+least-squares loss covers all joints, all sweeps and all recordings (which may differ in
+gravity and payload).
+
+Sweep moments make it exact and independent of the sample count: while joint j sweeps with
+the others held, tau0_j and every column of a_j are a sin(theta) + b cos(theta) + c in the
+swept angle, so each sweep's steady samples reduce to one 6 x 6 matrix of moments
+(``identify.moments``), the regressors are evaluated at three angles per sweep (``jax.grad``
+of the gravity model), and the loss reduces to per-joint sufficient statistics (``Stats``, a
+K + 3 square matrix per joint for K offset components): an iteration costs the same for 10^3
+or 10^6 samples.
+
+The solve (``solve``) is variable projection: r, l and b are linear given delta and are solved
+exactly inside; delta follows damped Newton steps on the reduced objective, started from three
+alternating least-squares rounds (the reduced objective is not convex); the noise variance is
+re-estimated from the residuals at every step. ``fit`` fits recordings jointly, ``fit_each``
+and ``fit_batch`` fit many recordings each on its own in vmapped batches on the default
+backend (a GPU when present).
 
 What the data cannot determine is handled explicitly:
 - offsets: a Gaussian prior toward the nominal model, ``PRIOR_COM`` m per component; directions
@@ -21,25 +34,32 @@ What the data cannot determine is handled explicitly:
   joint whose swept gravity torque stays below ``EXCITATION`` N m RMS (joint 0 of an upright
   arm) gets the mean ratio of the excited joints of its actuator type (the paper's rule; the
   nominal ratio when none is excited) through a tie of relative width ``TIE``; a weak prior of
-  relative width ``PRIOR_RATIO`` toward the nominal ratio keeps the problem well posed.
+  relative width ``PRIOR_RATIO`` toward the nominal ratio keeps the problem well posed;
+- viscous terms: a prior of ``PRIOR_VISCOUS`` A s/rad; a joint swept at one speed only (pass
+  speeds within ``SPEED_SPREAD``) cannot tell b from l and has b held at 0.
 Standard errors come from the Gauss-Newton Hessian with the noise variance estimated from the
 residuals (Cramer-Rao bound); the singular values of the scaled Fisher information report the
 identifiability.
+
+Compiled code is shared by equal models: a ``FitModel`` compares equal by the content of the
+robot's compiled model (not its name or file), so an edited model never reuses stale code.
 """
 
 from __future__ import annotations
 
+import hashlib
 import os
 import threading
 import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from functools import partial
+from functools import cached_property, partial
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
@@ -83,11 +103,11 @@ class FitError(JaxcompError):
 
 
 class Stats(NamedTuple):
-    """Per-joint sufficient statistics of the least squares (F = K + 2 features).
+    """Per-joint sufficient statistics of the least squares (F = K + 3 features).
 
-    S (n, F, F) = sum phi phi^T, s (n, F) = sum phi c, c2 (n,) = sum c^2 over the steady
-    samples of each joint's sweeps, with phi = [tau0, reg, d]; samples (n,);
-    torque2 (n,) = sum tau0^2, N^2 m^2 (excitation).
+    S (n, F, F) = sum phi phi^T, s (n, F) = sum phi c, c2 (n,) = sum c^2 (A^2) over the steady
+    samples of each joint's sweeps, with phi = [tau0 (N m), reg (K, N), d, v (rad/s)] and c
+    the current (A); samples (n,); torque2 (n,) = sum tau0^2, N^2 m^2 (excitation).
     """
 
     S: jax.Array
@@ -108,32 +128,69 @@ class Stats(NamedTuple):
 class Solution(NamedTuple):
     """Result of ``solve`` (device arrays; vmapped fits have a leading batch axis)."""
 
-    ratio: jax.Array
-    friction: jax.Array
+    ratio: jax.Array  # (n,) A/(N m)
+    friction: jax.Array  # (n,) A, signed (the params file stores |l|)
     viscous: jax.Array  # (n,) A s/rad
     com: jax.Array  # (K,) m
-    cov: jax.Array  # (P, P) covariance of [ratio, friction, com]
+    cov: jax.Array  # (P, P) covariance of [ratio, friction, viscous, com], P = 3 n + K
     sigma: jax.Array  # A, noise standard deviation estimated from the residuals
     singular: jax.Array  # (P,) singular values of the scaled Fisher information
     excited: jax.Array  # (n,) bool
     iterations: jax.Array
     converged: jax.Array
-    rss: jax.Array  # weighted residual sum of squares, A^2
+    rss: jax.Array  # residual sum of squares over the steady samples, A^2
+
+
+def _fingerprint(robot: Robot) -> str:
+    """SHA-256 of the robot's compiled model (MuJoCo's binary MJB): equal for equal models,
+    different after any edit, whatever the name or file."""
+    buffer = np.empty(mujoco.mj_sizeModel(robot.model), np.uint8)
+    mujoco.mj_saveModel(robot.model, None, buffer)
+    return hashlib.sha256(buffer.tobytes()).hexdigest()
 
 
 @dataclass(frozen=True, eq=False)
 class FitModel:
-    """What a fit needs of the robot: jitted regressors and the moving links.
+    """What a fit needs of the robot: its current-controlled joints, the moving links whose
+    COM offsets are fitted, the nominal ratios and the actuator types.
 
-    Built once per robot (``fit_model``); its jitted functions are shared by every fit.
+    Made once per robot and kept on it (``fit_model``). It is the static argument of the
+    jitted fit functions; two ``FitModel`` compare equal (and hash alike) when their robots'
+    compiled models have the same content and they fit the same joints and links, so equal
+    models share compiled code and an edited model gets its own.
+
+    Attributes:
+        robot: the robot model.
+        joints: (n,) indices of the current-controlled joints among the robot's joints.
+        links: names of the L links whose COM offset is fitted (K = 3 L components).
+        link_ids: (L,) their indices among the robot's links.
+        ratio0: (n,) A/(N m), the nominal current/torque ratios.
+        types: actuator type label of each joint (ratio ties between unexcited joints).
     """
 
     robot: Robot
-    joints: np.ndarray  # indices of the current-controlled joints in the robot's joints
-    links: tuple[str, ...]  # links whose COM offset is fitted
+    joints: np.ndarray
+    links: tuple[str, ...]
     link_ids: np.ndarray
     ratio0: np.ndarray
     types: tuple[str, ...]
+
+    @cached_property
+    def _identity(self) -> tuple:
+        return (
+            _fingerprint(self.robot),
+            tuple(int(j) for j in self.joints),
+            self.links,
+            tuple(int(i) for i in self.link_ids),
+            tuple(float(r) for r in self.ratio0),
+            self.types,
+        )
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, FitModel) and self._identity == other._identity
+
+    def __hash__(self) -> int:
+        return hash(self._identity)
 
     @property
     def n(self) -> int:
@@ -151,39 +208,38 @@ class FitModel:
         return names
 
 
-_MODELS: dict[str, FitModel] = {}
-
-
 def fit_model(robot: Robot | str) -> FitModel:
-    """The ``FitModel`` of a robot (cached by model name and source)."""
+    """The ``FitModel`` of a robot (name, path or ``Robot``), kept on the robot."""
     robot = load_robot(robot)
-    key = f"{robot.name}:{robot.source}"
-    if key not in _MODELS:
-        joints = arm_joint_indices(robot)
-        tree = robot.tree
-        moved = np.asarray(tree.moves)[joints].any(axis=0)
-        mass = np.asarray(robot.nominal_params().mass)
-        ids = np.flatnonzero(moved & (mass > 0))
-        types = robot.actuator_types or tuple(f"joint{j}" for j in range(len(joints)))
-        if len(types) != len(joints):
-            raise InputError(
-                f"{robot.name}: jaxcomp_actuator_types lists {len(types)} types for "
-                f"{len(joints)} joints"
-            )
-        _MODELS[key] = FitModel(
-            robot=robot,
-            joints=joints,
-            links=tuple(tree.body_names[i] for i in ids),
-            link_ids=ids,
-            ratio0=RobotParams.nominal(robot).ratio,
-            types=tuple(types),
+    return robot.cached(("jax_fit.FitModel",), lambda: _build_model(robot))
+
+
+def _build_model(robot: Robot) -> FitModel:
+    joints = arm_joint_indices(robot)
+    tree = robot.tree
+    moved = np.asarray(tree.moves)[joints].any(axis=0)
+    mass = np.asarray(robot.nominal_params().mass)
+    ids = np.flatnonzero(moved & (mass > 0))
+    types = robot.actuator_types or tuple(f"joint{j}" for j in range(len(joints)))
+    if len(types) != len(joints):
+        raise InputError(
+            f"{robot.name}: jaxcomp_actuator_types lists {len(types)} types for "
+            f"{len(joints)} joints"
         )
-    return _MODELS[key]
+    return FitModel(
+        robot=robot,
+        joints=joints,
+        links=tuple(tree.body_names[i] for i in ids),
+        link_ids=ids,
+        ratio0=RobotParams.nominal(robot).ratio,
+        types=tuple(types),
+    )
 
 
 @partial(jax.jit, static_argnums=0)
 def _regressors(model: FitModel, q, swept, gravity, payload_mass, payload_com):
-    """tau0 (B,) and d tau / d delta (B, K) of the swept joint of each bin."""
+    """tau0 (B,) N m and d tau0 / d delta (B, K) N of the swept joint ``swept`` (B,) at each
+    arm pose ``q`` (B, n) rad, under ``gravity`` (3,) m/s^2 with the recording's payload."""
     robot = model.robot
     tree = robot.tree
     nominal = robot.nominal_params()
@@ -319,11 +375,12 @@ def _theta(delta, st, pr, sigma2):
 def solve(model_key: tuple, st: Stats, max_iter: int = 50) -> Solution:
     """The joint fit on sufficient statistics (pure given the statics; vmap-able).
 
-    Variable projection: ratio and friction are linear given the offsets, so they are solved
-    exactly inside; the offsets follow damped Newton steps on the reduced objective (the
-    ratio-versus-mass-scale valley of the full problem is flat there, not curved). The noise
-    variance is re-estimated from the residuals at every step. ``model_key`` = (n, K, nominal
-    ratios, actuator types), the static description of the model.
+    Variable projection: ratio, friction and viscous terms are linear given the offsets, so
+    they are solved exactly inside; the offsets follow damped Newton steps on the reduced
+    objective (the ratio-versus-mass-scale valley of the full problem is flat there, not
+    curved), started from three alternating least-squares rounds. The noise variance is
+    re-estimated from the residuals at every step. ``model_key`` = (n, K, nominal ratios,
+    actuator types), the static description of the model.
     """
     n, K, ratio0, types = model_key
     ratio0 = jnp.asarray(ratio0)
@@ -699,14 +756,27 @@ class BatchFit(NamedTuple):
     seconds: float
 
 
-_COMPILED: dict[tuple, Callable] = {}  # (model, batch, sweeps, mesh) -> compiled fit
-
-
 @partial(jax.jit, static_argnums=0)
 def _fit_moments(model: FitModel, m: SweepMoments) -> tuple[Solution, jax.Array]:
     """Stacked moments (leading batch axis) -> (Solution, coef) of every recording."""
     st, coef = jax.vmap(_sweep_stats.__wrapped__, in_axes=(None, 0))(model, m)
     return jax.vmap(solve.__wrapped__, in_axes=(None, 0))(_key(model), st), coef
+
+
+def _compiled_fit(model: FitModel, chunk: SweepMoments, shape: tuple) -> tuple[Callable, float]:
+    """``_fit_moments`` compiled ahead of time for ``chunk`` (so that its time is known),
+    kept on the robot per model and ``shape`` = (batch, sweeps, mesh); and the seconds spent
+    compiling it now (0 when it was compiled before)."""
+    seconds = 0.0
+
+    def build() -> Callable:
+        nonlocal seconds
+        t0 = time.perf_counter()
+        compiled = _fit_moments.lower(model, chunk).compile()
+        seconds = time.perf_counter() - t0
+        return compiled
+
+    return model.robot.cached(("jax_fit.fit_batch", model, *shape), build), seconds
 
 
 def fit_batch(
@@ -752,13 +822,10 @@ def fit_batch(
     for start in range(0, w, b):
         idx = np.minimum(np.arange(start, start + b), w - 1)
         chunk = place(jax.tree.map(lambda a, idx=idx: np.asarray(a)[idx], padded))
-        key = (model, b, size, mesh)  # FitModel hashes by identity
+        compiled, compiling = _compiled_fit(model, chunk, (b, size, mesh))
+        compile_seconds += compiling
         t0 = time.perf_counter()
-        if key not in _COMPILED:  # compiled ahead of time, so that its time is known
-            _COMPILED[key] = _fit_moments.lower(model, chunk).compile()
-            compile_seconds += time.perf_counter() - t0
-            t0 = time.perf_counter()
-        sol, coef = jax.block_until_ready(_COMPILED[key](chunk))
+        sol, coef = jax.block_until_ready(compiled(chunk))
         k = min(b, w - start)
         sols.append(jax.tree.map(lambda a, k=k: np.asarray(a)[:k], sol))
         coefs.append(np.asarray(coef)[:k])

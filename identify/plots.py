@@ -19,6 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxcomp import dynamics  # noqa: E402
+from jaxcomp.current import sweep_current  # noqa: E402
 from jaxcomp.identify.bins import bin_sweeps  # noqa: E402
 from jaxcomp.recording import Recording  # noqa: E402
 from jaxcomp.robot_params import RobotParams, arm_joint_indices  # noqa: E402
@@ -29,7 +30,8 @@ _COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
 def predicted_current(
     rec: Recording, params: RobotParams, q: np.ndarray, joint: np.ndarray, direction: np.ndarray
 ) -> np.ndarray:
-    """Eq. (13) current (A) of the swept joint at poses ``q`` (B, n) for ``params``."""
+    """Eq. (13) current (A) of the swept joint ``joint`` (B,) at poses ``q`` (B, n) rad moving
+    in ``direction`` (B,) (+1 or -1), for ``params`` and the recording's gravity and payload."""
     robot = rec.robot()
     joints = arm_joint_indices(robot)
     inertial = params.inertial_params(robot)
@@ -39,7 +41,7 @@ def predicted_current(
     full[:, joints] = q
     g = jax.vmap(lambda x: dynamics.gravity(robot.tree, x, inertial, rec.gravity))(full)
     tau = np.asarray(g)[:, joints][np.arange(q.shape[0]), joint]
-    return params.ratio[joint] * tau + params.friction[joint] * direction
+    return sweep_current(tau, direction, params.ratio[joint], params.friction[joint])
 
 
 def plot_sweeps(rec: Recording, fits: Mapping[str, RobotParams], path: str | Path) -> Path:

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.interface import Arm, ArmState
 from jaxcomp.identify.plan import CalibrationPlan, plan_from_dict
@@ -40,7 +41,7 @@ def _check_metadata(model: str, n: int, gravity, payload_mass, payload_com) -> N
     """Validate the metadata with the recording format's own rules before anything moves."""
     data: dict[str, Any] = {
         "model": np.array(model),
-        "t": np.array([0.0, 0.001]),
+        "t": np.array([0.0, CONTROL_PERIOD]),
         "q": np.zeros((2, n)),
         "dq": np.zeros((2, n)),
         "current": np.zeros((2, n)),

@@ -33,11 +33,11 @@ from typing import Any
 
 import numpy as np
 
+from jaxcomp.constants import STANDARD_GRAVITY
 from jaxcomp.errors import InputError, JaxcompError, ModelError
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import arm_joint_indices, write_json_atomic
 
-STANDARD_GRAVITY = (0.0, 0.0, -9.81)
 _ARRAYS = ("t", "q", "dq", "current", "joint", "direction")
 _OPTIONAL = ("gravity", "payload_mass", "payload_com")
 #: |q| beyond this (rad) cannot be an angle in radians of a revolute arm joint.

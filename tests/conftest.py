@@ -5,7 +5,7 @@ import pytest
 
 import jaxcomp
 from jaxcomp.hardware import Simulator, TrueRobot
-from jaxcomp.identify.plan import default_plan
+from jaxcomp.identify.plan_design import default_plan
 from jaxcomp.identify.recorder import record
 
 #: Viscous friction of the simulated truth, N m s/rad: unmodelled by the default plan's fit.

@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 import jaxcomp
 from jaxcomp import dynamics
+from jaxcomp.constants import CONTROL_RATE
 from jaxcomp.errors import InputError
 from jaxcomp.identify.baseline import fit_baseline, phase_fit
 from jaxcomp.identify.bins import bin_sweeps
@@ -44,7 +45,7 @@ def robot():
     return jaxcomp.load_robot("gen3_lite")
 
 
-def _profile(speed_deg=40.0, span_deg=100.0, ramp=0.1, rate=1000.0):
+def _profile(speed_deg=40.0, span_deg=100.0, ramp=0.1, rate=CONTROL_RATE):
     """Angle (rad), velocity (rad/s), direction of -span -> +span -> -span, trapezoidal speed."""
     speed, span = np.deg2rad(speed_deg), np.deg2rad(span_deg)
     acc = speed / ramp
@@ -113,7 +114,7 @@ def synthetic(
     current = ratio * tau + friction * d[:, None] * (joint[:, None] == np.arange(6))
     current += np.random.default_rng(seed).normal(0.0, noise, current.shape)
     return Recording(
-        t=np.arange(len(q)) / 1000.0,
+        t=np.arange(len(q)) / CONTROL_RATE,
         q=q,
         dq=dq,
         current=current,
@@ -280,7 +281,7 @@ def test_timing(robot, clean):
             **{k: np.concatenate([getattr(clean, k)] * 3) for k in ("q", "dq", "current")},
             "joint": np.concatenate([clean.joint] * 3),
             "direction": np.concatenate([clean.direction] * 3),
-            "t": np.arange(3 * n) / 1000.0,
+            "t": np.arange(3 * n) / CONTROL_RATE,
         }
     )
     bins = bin_sweeps(big)

@@ -12,7 +12,7 @@ import jaxcomp
 from jaxcomp.cli import cli
 from jaxcomp.identify import jax_fit
 from jaxcomp.identify.baseline import fit_baseline
-from jaxcomp.identify.plan import default_plan
+from jaxcomp.identify.plan_design import default_plan
 from jaxcomp.recording import Recording
 from jaxcomp.robot_params import RobotParams
 
@@ -86,6 +86,19 @@ def test_phase_shift_matches_the_truth_phase(robot, truth, synthetic_fit):
     phase, _ = jax_fit.phase_shift(model, coef, m.joint, com, np.zeros((model.K, model.K)))
     assert np.all(np.abs(fitted.phase_shift - phase)[1:5] < 3 * fitted.std["phase_shift"][1:5])
     assert np.abs(phase[1:5]).max() > np.deg2rad(0.2)  # the truth has a phase shift to find
+
+
+def test_fit_models_are_kept_on_the_robot_and_equal_by_content(robot, tmp_path):
+    """Equal models share compiled fits; an edited model of the same name does not."""
+    assert jax_fit.fit_model(robot) is jax_fit.fit_model(robot)
+    assert jax_fit.fit_model(robot) == jax_fit.fit_model("gen3_lite")
+    text = robot.source.read_text()
+    edited = tmp_path / "gen3_lite.xml"
+    edited.write_text(text.replace('mass="', 'mass="1', 1))
+    assert edited.read_text() != text
+    other = jaxcomp.load_robot(edited)
+    assert other.name == robot.name
+    assert jax_fit.fit_model(other) != jax_fit.fit_model(robot)
 
 
 def test_two_mountings_and_a_payload_identify_every_ratio(robot, truth, sweeps):

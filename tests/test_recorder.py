@@ -1,4 +1,5 @@
-"""Calibration plans (identify/plan.py) and recording them (identify/recorder.py)."""
+"""Calibration plans (identify/plan.py, identify/plan_design.py) and recording them
+(identify/recorder.py)."""
 
 import json
 import math
@@ -18,12 +19,11 @@ from jaxcomp.identify.plan import (
     UPPER,
     CalibrationPlan,
     Sweep,
-    default_plan,
     load_plan,
     plan_for_joints,
     plan_from_dict,
-    plan_issues,
 )
+from jaxcomp.identify.plan_design import PlanOptions, default_plan, plan_issues
 from jaxcomp.identify.recorder import record
 from jaxcomp.recording import load_recording, recover
 
@@ -217,6 +217,16 @@ def test_default_plan(plan):
         g = np.array([ROBOT.gravity(s.pose(a))[s.joint] for a in np.linspace(s.lower, s.upper, 9)])
         assert np.ptp(g) > (0.5 if s.joint in (1, 2, 3, 4) else -1.0), s
     plan.validate(ROBOT)
+
+
+def test_default_plan_is_kept_on_the_robot_per_options(plan):
+    """One frozen PlanOptions is the cache key; keyword arguments build it."""
+    assert default_plan(ROBOT) is plan
+    assert default_plan(ROBOT, PlanOptions()) is plan
+    assert default_plan(ROBOT, sweeps_per_joint=3, grid=list(PlanOptions().grid)) is plan
+    assert PlanOptions(gravity=[0, 0, -9.81]) == PlanOptions(gravity=(0.0, 0.0, -9.81))
+    with pytest.raises(TypeError):
+        default_plan(ROBOT, sweep_per_joint=1)
 
 
 # --------------------------------------------------------------------- recording

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from jaxcomp import recording
+from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError, JaxcompError
 from jaxcomp.identify.bins import bin_sweeps, steady
 from jaxcomp.recording import (
@@ -26,7 +27,7 @@ RATIO, FRICTION = 0.3, 1.5  # A/(N m), A: the synthetic current model of the swe
 def _profile(distance: float, ramp: int) -> np.ndarray:
     """Velocities (samples of 1 ms), rad/s: a ramp up, constant SPEED, a ramp down."""
     up = SPEED * np.arange(1, ramp + 1) / ramp
-    flat = int(round((distance - SPEED * ramp * 1e-3) / (SPEED * 1e-3)))
+    flat = int(round((distance - SPEED * ramp * CONTROL_PERIOD) / (SPEED * CONTROL_PERIOD)))
     return np.r_[up, np.full(flat, SPEED), up[::-1]]
 
 
@@ -48,12 +49,12 @@ def synthetic(joint: int = 1, lower: float = -0.4, upper: float = 0.4, *, sweeps
     N = len(vel)
     dq = np.zeros((N, N_JOINTS))
     dq[:, joint] = vel
-    q = q0 + np.cumsum(dq, axis=0) * 1e-3
+    q = q0 + np.cumsum(dq, axis=0) * CONTROL_PERIOD
     current = np.full((N, N_JOINTS), 0.1)
     current[:, joint] = RATIO * 5.0 * np.sin(q[:, joint]) + FRICTION * direction
     return {
         "model": np.array("gen3_lite"),
-        "t": np.arange(1, N + 1) * 1e-3,
+        "t": np.arange(1, N + 1) * CONTROL_PERIOD,
         "q": q,
         "dq": dq,
         "current": current,

@@ -118,7 +118,8 @@ def calibrate(backend, out_dir, plan_file, seed, truth_file, ip, resume, viewer)
     Then the joint JAX fit and the paper's scipy fit run on it and their parameters are
     printed side by side (with the truth, on the simulator).
     """
-    from jaxcomp.identify.plan import default_plan, load_plan
+    from jaxcomp.identify.plan import load_plan
+    from jaxcomp.identify.plan_design import default_plan
     from jaxcomp.identify.plots import plot_sweeps
     from jaxcomp.identify.recorder import record
     from jaxcomp.robot import load_robot

@@ -152,7 +152,7 @@ def short_plan(robot: Any) -> Any:
     """A quick plan for CPU runs and CI (~26 s instead of ~230 s for the Gen3 Lite): one sweep
     per joint over -40..+40 deg at 60 deg/s (the default plan's held-pose search), transfers
     at 90 deg/s, 0.2 s settling. One speed per joint: the fit holds viscous friction at 0."""
-    from jaxcomp.identify.plan import default_plan
+    from jaxcomp.identify.plan_design import default_plan
 
     return default_plan(
         robot,
@@ -169,7 +169,8 @@ def short_plan(robot: Any) -> Any:
 
 def load_study_plan(robot: Any, plan: str) -> Any:
     """``plan``: "default" (the paper's, ``default_plan``), "short" or a plan JSON file."""
-    from jaxcomp.identify.plan import default_plan, load_plan
+    from jaxcomp.identify.plan import load_plan
+    from jaxcomp.identify.plan_design import default_plan
 
     if plan == "default":
         return default_plan(robot)
