@@ -41,6 +41,7 @@ jitted JAX function of device arrays (model constants and identified params fold
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -280,7 +281,9 @@ def _resolve(
     )
 
 
-def impedance_step_fn(res: ResolvedModel, gains: ImpedanceGains):
+def impedance_step_fn(
+    res: ResolvedModel, gains: ImpedanceGains
+) -> Callable[..., tuple[jax.Array, Diagnostics]]:
     """The pure (unjitted) step function of the controller; see ``ImpedanceController.step``.
 
     The rigid-body terms come from one call of ``dynamics.kinematics_and_dynamics`` (g, the

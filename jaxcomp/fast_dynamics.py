@@ -1,7 +1,8 @@
 """One-pass kinematics and dynamics of one pose, shaped for the latency of one XLA:CPU call.
 
 ``kinematics_and_dynamics`` returns g(q), the site Jacobian, the site pose and M(q) from one
-forward kinematics (same values as ``jaxcomp.dynamics``; jit-, vmap- and grad-able). A call of
+forward kinematics (same values as ``jaxcomp.dynamics``; jit-, vmap- and grad-able): the one
+call per cycle of the impedance and velocity controllers (``KinematicsDynamics``). A call of
 a few thousand flops costs XLA:CPU little compute but a fixed amount per kernel, per constant
 array and per buffer it allocates, so the computation is cut into a few stages:
 
