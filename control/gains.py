@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
+from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
 
 if TYPE_CHECKING:
@@ -159,7 +160,7 @@ class ImpedanceGains:
         current_rate_limit: A/s, the most a joint's current may change per second (default
             2000 A/s = 2 A per 1 ms cycle: a full-scale 11 A step takes 5.5 ms, and the
             friction compensation's sign flip of Eq. (16), up to 2 l ~ 3 A, takes 2 cycles).
-        period: s, control period the rate limit refers to (1 kHz).
+        period: s, control period the rate limit refers to (``CONTROL_PERIOD``, 1 kHz).
         singularity_damping: 1/kg added to the diagonal of J M^-1 J^T before it is inverted,
             keeping the nullspace projector and Lambda finite at singular poses; small against
             its smallest eigenvalue (Gen3 Lite: 0.4-0.54 1/kg at home, preferred, retract;
@@ -181,7 +182,7 @@ class ImpedanceGains:
     friction_band: float = 0.0
     current_limit: PerJoint | None = None
     current_rate_limit: float = 2000.0
-    period: float = 0.001
+    period: float = CONTROL_PERIOD
     singularity_damping: float = 1e-6
 
     def __post_init__(self) -> None:

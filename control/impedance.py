@@ -28,7 +28,9 @@ moves one way freely and the other way only under 2 l of spring torque (joint 1 
 Lite: 2 x 4.8 N m, far beyond a 40 N/m spring). The "motion" direction uses the torque meant to
 move the joint (Cartesian force, damping and nullspace torques) instead; gravity compensation
 holds the joint and needs no help from it. The band makes s continuous where that torque
-crosses zero, instead of flipping +-l from one cycle to the next.
+crosses zero, instead of flipping +-l from one cycle to the next. The current is
+``jaxcomp.current.friction_current`` (Eq. 16 with that direction); g, x, J and M come from one
+``jaxcomp.dynamics.kinematics_and_dynamics`` call per step.
 
 ``make_impedance_controller`` returns an ``ImpedanceController`` whose ``step`` is one pure,
 jitted JAX function of device arrays (model constants and identified params folded in), and
@@ -39,6 +41,7 @@ jitted JAX function of device arrays (model constants and identified params fold
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -47,6 +50,7 @@ import numpy as np
 
 from jaxcomp import dynamics
 from jaxcomp.control.gains import ImpedanceGains, JointGains
+from jaxcomp.current import friction_current
 from jaxcomp.errors import InputError
 from jaxcomp.kinematic_tree import KinematicTree
 from jaxcomp.params import InertialParams
@@ -130,35 +134,6 @@ def pack_diagnostics(ee_pos, error, force, tau, current_raw, rate_limited, satur
 # ----------------------------------------------------------------------------- model terms
 
 
-class SiteDynamics(NamedTuple):
-    """Rigid-body terms of one pose that the controllers need (arm base frame)."""
-
-    gravity: jax.Array  # (n,) N m, g(q)
-    pos: jax.Array  # (3,) m, site position
-    rot: jax.Array  # (3, 3) site orientation
-    jac: jax.Array  # (6, n) site Jacobian, rows vx vy vz wx wy wz, world-aligned
-    mass: jax.Array  # (n, n) kg m^2, M(q)
-
-
-def site_dynamics(
-    tree: KinematicTree,
-    q: jax.Array,
-    site: int,
-    params: InertialParams | None = None,
-    gravity_vector=None,
-) -> SiteDynamics:
-    """g, site position, orientation, Jacobian and M at q (the one place to swap in a one-pass
-    dynamics function). XLA merges the forward kinematics these share."""
-    pos, rot = dynamics.site_pose(tree, q, site)
-    return SiteDynamics(
-        gravity=dynamics.gravity(tree, q, params, gravity_vector),
-        pos=pos,
-        rot=rot,
-        jac=dynamics.site_jacobian(tree, q, site),
-        mass=dynamics.mass_matrix(tree, q, params),
-    )
-
-
 def cholesky_solve_lower(m: jax.Array, b: jax.Array) -> jax.Array:
     """W = L^-1 B for M = L L^T (symmetric positive definite M (n, n), B (n, k)).
 
@@ -230,22 +205,6 @@ def clip_error(err, deadband: float, clip: float, xp=jnp):
     return err * scale, norm > clip
 
 
-def rest_sign(x, band: float, xp=jnp):
-    """sign(x), or with ``band`` > 0 its continuous version clip(x / band, -1, 1)."""
-    if band > 0:
-        return xp.clip(x * (1.0 / band), -1.0, 1.0)
-    return xp.sign(x)
-
-
-def friction_current(tau, tau_rest, dq, ratio, friction, threshold, band, xp=jnp):
-    """Eq. (16) with its at-rest direction taken from ``tau_rest`` (N m):
-    c = r tau + l (a (sign dq - s) + s), a = min(|dq| / t, 1), s = ``rest_sign(tau_rest)``.
-    With ``tau_rest`` = tau and ``band`` = 0 it is ``jaxcomp.current.current``, the paper's."""
-    a = xp.minimum(xp.abs(dq) * (1.0 / threshold), 1.0)
-    s = rest_sign(tau_rest, band, xp)
-    return ratio * tau + friction * (a * (xp.sign(dq) - s) + s)
-
-
 def limit_current(raw, prev, max_step, limit, xp=jnp):
     """(current, rate_limited, saturated): ``raw`` A moved at most ``max_step`` A from ``prev``,
     then within +-``limit`` A."""
@@ -281,8 +240,14 @@ def check_vector3(x, name: str, unit: str) -> np.ndarray:
     return arr
 
 
-class _Resolved(NamedTuple):
-    """Everything both implementations need, as numpy constants."""
+class ResolvedModel(NamedTuple):
+    """The model a controller is built on, resolved to numpy constants (both implementations).
+
+    ``inertial``: the identified inertials (nominal masses, COM offsets applied), base frame;
+    ``gravity_vector`` (3,) m/s^2 in the base frame; ``ratio`` (n,) A/(N m) and ``friction``
+    (n,) A of Eq. (16); ``joint``: the expanded per-joint gains. ``impedance_step_fn`` takes
+    one, e.g. with other params swapped in by ``_replace``.
+    """
 
     tree: KinematicTree
     site: int
@@ -295,7 +260,7 @@ class _Resolved(NamedTuple):
 
 def _resolve(
     robot: Robot, params: RobotParams | None, gains: ImpedanceGains, site: str
-) -> _Resolved:
+) -> ResolvedModel:
     if not isinstance(gains, ImpedanceGains):
         raise InputError(f"gains must be an ImpedanceGains, got {type(gains).__name__}")
     joint = gains.joint_arrays(robot)  # also refuses a robot with base joints
@@ -305,7 +270,7 @@ def _resolve(
     if params.model != robot.name:
         raise InputError(f"params are for model {params.model!r}, the robot is {robot.name!r}")
     inertial = InertialParams(*(np.asarray(x, dtype=float) for x in params.inertial_params(robot)))
-    return _Resolved(
+    return ResolvedModel(
         tree=robot.tree,
         site=robot.site_index(site),
         inertial=inertial,
@@ -316,8 +281,14 @@ def _resolve(
     )
 
 
-def impedance_step_fn(res: _Resolved, gains: ImpedanceGains):
-    """The pure (unjitted) step function of the controller; see ``ImpedanceController.step``."""
+def impedance_step_fn(
+    res: ResolvedModel, gains: ImpedanceGains
+) -> Callable[..., tuple[jax.Array, Diagnostics]]:
+    """The pure (unjitted) step function of the controller; see ``ImpedanceController.step``.
+
+    The rigid-body terms come from one call of ``dynamics.kinematics_and_dynamics`` (g, the
+    site's pose and Jacobian and M in one pass); the current from ``current.friction_current``.
+    """
     tree, site, inertial, grav = res.tree, res.site, res.inertial, res.gravity_vector
     k_d, d_d = np.asarray(gains.stiffness), np.asarray(gains.damping)
     k_o, d_o = np.asarray(gains.orientation_stiffness), np.asarray(gains.orientation_damping)
@@ -329,25 +300,25 @@ def impedance_step_fn(res: _Resolved, gains: ImpedanceGains):
     motion_sign, band = gains.friction_direction == "motion", gains.friction_band
 
     def step(q, dq, target_pos, target_vel, target_acc, prev_current, target_rot=None):
-        sd = site_dynamics(tree, q, site, inertial, grav)
-        jac = sd.jac[:3]
-        error, clipped = clip_error(target_pos - sd.pos, gains.deadband, gains.error_clip)
+        kd = dynamics.kinematics_and_dynamics(tree, q, site, inertial, grav)
+        jac = kd.jacobian[:3]
+        error, clipped = clip_error(target_pos - kd.position, gains.deadband, gains.error_clip)
         force = k_d * error + d_d * (target_vel - jac @ dq)
         tau2 = k_n * (q_pref - q) - d_n * dq
         if orientation:
             if target_rot is None:
                 raise InputError("orientation gains are set: step needs target_rot (3, 3)")
-            jac_w = sd.jac[3:]
-            moment = k_o * orientation_error(sd.rot, target_rot) - d_o * (jac_w @ dq)
+            jac_w = kd.jacobian[3:]
+            moment = k_o * orientation_error(kd.rotation, target_rot) - d_o * (jac_w @ dq)
             tau2 = tau2 + jac_w.T @ moment
         # one Cholesky M = L L^T; W = L^-1 [J^T, tau_2]; W^T W = [J, tau_2]^T M^-1 [J^T, tau_2]
-        w = cholesky_solve_lower(sd.mass, jnp.concatenate([jac.T, tau2[:, None]], axis=1))
+        w = cholesky_solve_lower(kd.mass_matrix, jnp.concatenate([jac.T, tau2[:, None]], axis=1))
         gram = w[:, :3].T @ w
         lam = inverse3(gram[:, :3] + eps)  # Lambda = (J M^-1 J^T)^-1
         # N^T tau_2 = tau_2 - J^T Lambda J M^-1 tau_2
         f_total = force - lam @ gram[:, 3]
         if feedforward:
-            jac_bar = spd_solve(sd.mass, jac.T) @ lam
+            jac_bar = spd_solve(kd.mass_matrix, jac.T) @ lam
             jac_dot = jax.jvp(lambda qq: dynamics.site_jacobian(tree, qq, site)[:3], (q,), (dq,))[1]
             v_bar = jac_bar @ target_vel
             cor_v = coriolis_times(tree, q, dq, v_bar, inertial)
@@ -355,11 +326,13 @@ def impedance_step_fn(res: _Resolved, gains: ImpedanceGains):
             force = force + ff
             f_total = f_total + ff
         tau_motion = jac.T @ f_total + tau2  # everything but the gravity compensation
-        tau = tau_motion + sd.gravity
+        tau = tau_motion + kd.gravity
         tau_rest = tau_motion if motion_sign else tau
         raw = friction_current(tau, tau_rest, dq, ratio, friction, threshold, band)
         cur, rate_limited, saturated = limit_current(raw, prev_current, max_step, limit)
-        diag = pack_diagnostics(sd.pos, error, force, tau, raw, rate_limited, saturated, clipped)
+        diag = pack_diagnostics(
+            kd.position, error, force, tau, raw, rate_limited, saturated, clipped
+        )
         return cur, diag
 
     return step
@@ -396,6 +369,8 @@ class ImpedanceController:
     Attributes:
         robot, params (RobotParams), gains, site (name), n (joints), joint (JointGains:
         posture rad, K_n, D_n, current limit A).
+        resolved: the ``ResolvedModel`` the step is built on (``impedance_step_fn(resolved,
+            gains)`` rebuilds the step function, e.g. with per-world params swapped in).
         step: jitted pure function ``step(q, dq, target_pos, target_vel, target_acc,
             prev_current[, target_rot]) -> (current (n,) A, Diagnostics)``; q rad (n,),
             dq rad/s (n,), target_pos m (3,), target_vel m/s (3,), target_acc m/s^2 (3,),
@@ -418,14 +393,14 @@ class ImpedanceController:
         site: str = "end_effector",
     ):
         gains = ImpedanceGains() if gains is None else gains
-        self._res = _resolve(robot, params, gains, site)
+        self.resolved = _resolve(robot, params, gains, site)
         self.robot = robot
         self.params = RobotParams.nominal(robot) if params is None else params
         self.gains = gains
         self.site = site
         self.n = robot.nv
-        self.joint = self._res.joint
-        self.step_fn = impedance_step_fn(self._res, gains)
+        self.joint = self.resolved.joint
+        self.step_fn = impedance_step_fn(self.resolved, gains)
         self.step = jax.jit(self.step_fn)
         self.packed_size = packed_size(self.n, gains.orientation)
         self.packed_step = jax.jit(impedance_packed_fn(self.step_fn, self.n, gains.orientation))
@@ -539,7 +514,7 @@ class ImpedanceControllerPinocchio:
         from jaxcomp.urdf import to_urdf
 
         gains = ImpedanceGains() if gains is None else gains
-        self._res = res = _resolve(robot, params, gains, site)
+        self.resolved = res = _resolve(robot, params, gains, site)
         self.robot, self.gains, self.site, self.n = robot, gains, site, robot.nv
         self._pin = pin
         self.model = pin.buildModelFromXML(to_urdf(res.tree, res.inertial, robot.name))
@@ -567,7 +542,7 @@ class ImpedanceControllerPinocchio:
 
     def step(self, q, dq, target_pos, target_vel, target_acc, prev_current, target_rot=None):
         """(current (n,) A, Diagnostics) for numpy inputs; see ``ImpedanceController.step``."""
-        pin, pm, pd, g, res = self._pin, self.model, self.data, self.gains, self._res
+        pin, pm, pd, g, res = self._pin, self.model, self.data, self.gains, self.resolved
         qp, vp = self._to_pin(np.asarray(q, float)), self._to_pin(np.asarray(dq, float))
         grav = self._from_pin(pin.computeGeneralizedGravity(pm, pd, qp))
         mass = pin.crba(pm, pd, qp)  # upper triangle filled

@@ -59,8 +59,8 @@ def velocity_step_fn(robot: Robot, gains: VelocityGains, site: str = "end_effect
     clip, max_speed = gains.error_clip, gains.max_speed
 
     def step(q, target_pos, target_vel):
-        pos = dynamics.site_pose(tree, q, s)[0]
-        jac = dynamics.site_jacobian(tree, q, s)[:3]
+        kd = dynamics.kinematics_and_dynamics(tree, q, s)  # XLA drops the unused g and M
+        pos, jac = kd.position, kd.jacobian[:3]
         err = target_pos - pos
         err = err * (clip / jnp.maximum(jnp.linalg.norm(err), clip))
         v = k_p * err + target_vel

@@ -8,7 +8,8 @@ Prints, side by side, the median and p99 latency (us) of one controller step of 
 - ``jax_step_to_numpy``: the same plus copying the current command to numpy (to send it);
 - ``jax_packed_step``: ``ImpedanceController.packed_step``, what the 1 kHz loop calls: the
   state packed in one numpy vector (previous command included), one numpy vector back;
-- ``jax_site_dynamics``: g, site pose, Jacobian and M alone (the rigid-body share of the step);
+- ``jax_site_dynamics``: ``dynamics.kinematics_and_dynamics`` alone, the one pass the step
+  takes g, the site's pose and Jacobian and M from (the rigid-body share of the step);
 - ``jax_dispatch_floor``: a jitted function doing nothing with the same inputs and outputs;
 - ``pinocchio_numpy``: ``ImpedanceControllerPinocchio.step`` (numpy in, numpy out);
 
@@ -41,12 +42,12 @@ import numpy as np  # noqa: E402
 import pinocchio as pin  # noqa: E402
 
 import jaxcomp  # noqa: E402
+from jaxcomp import dynamics  # noqa: E402
 from jaxcomp.control import (  # noqa: E402
     ImpedanceControllerPinocchio,
     ImpedanceGains,
     make_impedance_controller,
 )
-from jaxcomp.control.impedance import site_dynamics  # noqa: E402
 from jaxcomp.control.timing import configure_jax_for_control, realtime_priority  # noqa: E402
 from jaxcomp.robot_params import RobotParams  # noqa: E402
 
@@ -147,7 +148,7 @@ def run(args, fifo: bool) -> dict:
 
     @jax.jit
     def dyn(q):
-        return site_dynamics(tree, q, site, inertial, grav)
+        return dynamics.kinematics_and_dynamics(tree, q, site, inertial, grav)
 
     @jax.jit
     def floor(q, dq, xd, vd, ad, prev):

@@ -64,7 +64,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
-from jaxcomp import dynamics
+from jaxcomp import current, dynamics
 from jaxcomp.errors import InputError, JaxcompError
 from jaxcomp.identify.bins import STEADY_FRACTION, STEADY_TRIM
 from jaxcomp.identify.moments import (
@@ -301,9 +301,15 @@ def _sweep_stats(model: FitModel, m: SweepMoments) -> tuple[Stats, jax.Array]:
 
 def _beta(theta: jax.Array, n: int, K: int) -> jax.Array:
     """(n, F) per-joint coefficients [r_j, r_j delta, l_j, b_j] of the features
-    [tau0, reg, d, v]; theta = [r (n), l (n), b (n), delta (K)]."""
+    [tau0, reg, d, v]; theta = [r (n), l (n), b (n), delta (K)]: the gradient of the current
+    model ``current.viscous_sweep_current`` (linear in the features) with respect to them."""
     r, l, b, delta = theta[:n], theta[n : 2 * n], theta[2 * n : 3 * n], theta[3 * n :]
-    return jnp.concatenate([r[:, None], r[:, None] * delta[None, :], l[:, None], b[:, None]], 1)
+
+    def model(phi):  # (n, F) features -> (n,) A
+        tau = phi[:, 0] + phi[:, 1 : K + 1] @ delta
+        return current.viscous_sweep_current(tau, phi[:, K + 1], phi[:, K + 2], r, l, b)
+
+    return jax.grad(lambda phi: jnp.sum(model(phi)))(jnp.zeros((n, K + 3)))
 
 
 def _rss(theta, st: Stats, n: int, K: int) -> jax.Array:

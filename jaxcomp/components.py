@@ -3,8 +3,9 @@
 XLA on CPU pays per operation and vectorizes poorly over tiny (3, 3) axes. Writing rigid-body
 kinematics entry by entry lets zeros and ones of the model's constant frames fold away in
 Python, lets XLA fuse everything into few loops, and under ``jax.vmap`` turns every entry into a
-contiguous batch vector. Entries are Python floats (constants) or JAX arrays of any batch shape.
-``sincos`` is a vectorisable float64 sine and cosine for batched kinematics.
+contiguous batch vector. Entries are Python floats (constants) or JAX arrays of any batch shape;
+``entry`` reads one from a parameter array (a float when the array is numpy). ``sincos`` is a
+vectorisable float64 sine and cosine for batched kinematics.
 """
 
 import jax
@@ -52,6 +53,14 @@ def total(terms):
     for t in terms:
         out = add(out, t)
     return out
+
+
+def entry(array, index):
+    """One entry of a parameter array: a Python float for numpy constants (folded), else the
+    array's entry (traced)."""
+    if isinstance(array, np.ndarray):
+        return float(array[index])
+    return array[index]
 
 
 def const_vec(v) -> list:

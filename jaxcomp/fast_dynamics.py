@@ -1,12 +1,13 @@
 """One-pass kinematics and dynamics of one pose, shaped for the latency of one XLA:CPU call.
 
 ``kinematics_and_dynamics`` returns g(q), the site Jacobian, the site pose and M(q) from one
-forward kinematics (same values as ``jaxcomp.dynamics``; jit-, vmap- and grad-able). A call of
+forward kinematics (same values as ``jaxcomp.dynamics``; jit-, vmap- and grad-able): the one
+call per cycle of the impedance and velocity controllers (``KinematicsDynamics``). A call of
 a few thousand flops costs XLA:CPU little compute but a fixed amount per kernel, per constant
 array and per buffer it allocates, so the computation is cut into a few stages:
 
-1. world rotations (3, 3, nv) and positions (3, nv) of the joint frames, one lane per joint, by
-   pointer jumping (ceil(log2 depth) rounds, lane gathers by slicing);
+1. world rotations (3, 3, nv) and positions (3, nv) of the joint frames, one lane per joint
+   (``lane_frames``, the forward kinematics every function of ``jaxcomp.dynamics`` shares);
 2. per joint frame, the first moment m c and the inertia about the world origin of the links it
    carries, entry by entry (``jaxcomp.components``, model constants folded in Python);
 3. per joint, its spatial velocity (v, w) at the world origin and the momentum (L, N) of the
@@ -25,7 +26,6 @@ Default (numpy) inertial parameters are folded too; passed-in ones are read entr
 World (base) frame; m, rad, kg, N m.
 """
 
-import weakref
 from typing import NamedTuple
 
 import jax
@@ -33,10 +33,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcomp import components as cp
-from jaxcomp.kinematic_tree import KinematicTree
+from jaxcomp.constants import STANDARD_GRAVITY
+from jaxcomp.kinematic_tree import KinematicTree, Lanes
 from jaxcomp.params import InertialParams
-
-_STANDARD_GRAVITY = np.array([0.0, 0.0, -9.81])
 
 
 class KinematicsDynamics(NamedTuple):
@@ -47,78 +46,6 @@ class KinematicsDynamics(NamedTuple):
     position: jax.Array  # (3,) m, site position
     rotation: jax.Array  # (3, 3) site orientation: columns are the site axes
     mass_matrix: jax.Array  # (nv, nv) kg m^2 (kg for slides), M(q), armature included
-
-
-class _Plan:
-    """Constant structure of a tree: one lane per joint, links attached to lanes."""
-
-    def __init__(self, tree: KinematicTree):
-        nb, nv = tree.nb, tree.nv
-        frame_of: list = [None] * nb  # per link: (lane or -1 = world, 4x4 offset from it)
-        self.parent = np.full(nv, -1)  # parent lane of each lane
-        self.pre = pre = np.zeros((nv, 4, 4))  # parent lane frame -> joint frame (q = ref)
-        for b in range(nb):
-            offset = np.eye(4)
-            offset[:3, :3], offset[:3, 3] = tree.rot[b], tree.pos[b]
-            p = tree.parent[b]
-            lane, frame = (-1, offset) if p < 0 else (frame_of[p][0], frame_of[p][1] @ offset)
-            for j in tree.body_joints[b]:
-                self.parent[j], pre[j] = lane, frame
-                lane, frame = j, np.eye(4)
-            frame_of[b] = (lane, frame)
-        self.frame_of = frame_of
-        # lane transform R = A0 + sin(d) A1 + (1 - cos d) A2, t = B0 + ... + d B3
-        self.rot_coef = np.zeros((3, 3, 3, nv))
-        self.pos_coef = np.zeros((4, 3, nv))
-        for j in range(nv):
-            rot, pos = pre[j][:3, :3], pre[j][:3, 3]
-            self.rot_coef[0, ..., j], self.pos_coef[0, :, j] = rot, pos
-            axis, anchor = tree.joint_axis[j], tree.joint_pos[j]
-            if tree.is_hinge[j]:
-                k1 = np.array(
-                    [[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]]
-                )
-                for n, k in ((1, k1), (2, k1 @ k1)):
-                    self.rot_coef[n, ..., j] = rot @ k
-                    self.pos_coef[n, :, j] = -rot @ k @ anchor
-            else:
-                self.pos_coef[3, :, j] = rot @ axis
-        self.moving = [b for b in range(nb) if frame_of[b][0] >= 0]  # links some joint moves
-        self.carried: list = [[] for _ in range(nv)]  # links carried by each joint frame
-        for b in self.moving:
-            self.carried[frame_of[b][0]].append(b)
-        self.subtree = np.eye(nv, dtype=bool)  # subtree[j, l]: lane l moves with joint j
-        depth = np.ones(nv, dtype=int)
-        for lane in range(nv):
-            a = self.parent[lane]
-            while a >= 0:
-                self.subtree[a, lane] = True
-                depth[lane] += 1
-                a = self.parent[a]
-        self.depth = int(depth.max())
-        self.related = tree.moves[:, tree.joint_body]  # joint j moves the link of joint k
-
-    def ancestors(self, k: int) -> np.ndarray:
-        """Lane k steps up from each lane (-1: none)."""
-        out = np.arange(len(self.parent))
-        for _ in range(k):
-            out = np.where(out >= 0, self.parent[np.maximum(out, 0)], -1)
-        return out
-
-
-_PLANS: "weakref.WeakKeyDictionary[KinematicTree, _Plan]" = weakref.WeakKeyDictionary()
-
-
-def _plan(tree: KinematicTree) -> _Plan:
-    if tree not in _PLANS:
-        _PLANS[tree] = _Plan(tree)
-    return _PLANS[tree]
-
-
-def _gather(x: jax.Array, idx, fill: jax.Array) -> jax.Array:
-    """x[..., idx] by concatenating slices (idx -1 -> ``fill`` of shape (..., 1))."""
-    parts = [x[..., int(i) : int(i) + 1] if i >= 0 else fill for i in idx]
-    return parts[0] if len(parts) == 1 else jnp.concatenate(parts, axis=-1)
 
 
 def _rot_mul(a: jax.Array, b: jax.Array) -> jax.Array:
@@ -140,30 +67,37 @@ def _cross(a, b) -> jax.Array:
     )
 
 
-def _lane_frames(tree: KinematicTree, plan: _Plan, q: jax.Array):
-    """World rotation (3, 3, nv) and position (3, nv) m of every joint frame."""
+def lane_frames(tree: KinematicTree, q: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """World rotation (3, 3, nv) and position (3, nv) m of every lane (joint frame) at q.
+
+    The forward kinematics of every function in ``jaxcomp.dynamics``: each lane's transform
+    from its parent (``KinematicTree.lanes``), composed root to leaves with element-wise
+    products (a (3, 3) dot would be a kernel of its own).
+    """
+    lanes = tree.lanes
     d = q - tree.joint_ref
-    rot = jnp.asarray(plan.rot_coef[0])
-    pos = jnp.asarray(plan.pos_coef[0])
+    rot = jnp.asarray(lanes.rot_coef[0])
+    pos = jnp.asarray(lanes.pos_coef[0])
     if tree.is_hinge.any():
         s, c = jnp.sin(d), 1.0 - jnp.cos(d)
-        rot = rot + s * plan.rot_coef[1] + c * plan.rot_coef[2]
-        if plan.pos_coef[1:3].any():
-            pos = pos + s * plan.pos_coef[1] + c * plan.pos_coef[2]
-    if plan.pos_coef[3].any():
-        pos = pos + d * plan.pos_coef[3]
-    eye, zero = jnp.eye(3)[:, :, None], jnp.zeros((3, 1))
-    span = 1
-    while span < plan.depth:
-        up = plan.ancestors(span)
-        rot_up = _gather(rot, up, eye)
-        rot, pos = _rot_mul(rot_up, rot), _rot_vec(rot_up, pos) + _gather(pos, up, zero)
-        span *= 2
-    return rot, pos
+        rot = rot + s * lanes.rot_coef[1] + c * lanes.rot_coef[2]
+        if lanes.pos_coef[1:3].any():
+            pos = pos + s * lanes.pos_coef[1] + c * lanes.pos_coef[2]
+    if lanes.pos_coef[3].any():
+        pos = pos + d * lanes.pos_coef[3]
+    rots, poss = [], []
+    for j in range(tree.nv):
+        up = lanes.parent[j]
+        r, t = rot[:, :, j : j + 1], pos[:, j : j + 1]
+        if up >= 0:
+            r, t = _rot_mul(rots[up], r), _rot_vec(rots[up], t) + poss[up]
+        rots.append(r)
+        poss.append(t)
+    return jnp.concatenate(rots, axis=2), jnp.concatenate(poss, axis=1)
 
 
-def _joint_axes(tree: KinematicTree, rot: jax.Array, pos: jax.Array):
-    """World joint axes (3, nv) and anchors (3, nv) m."""
+def joint_axes(tree: KinematicTree, rot: jax.Array, pos: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """World joint axes (3, nv) (unit) and anchors (3, nv) m, from ``lane_frames``."""
     axes, anchors = tree.joint_axis, tree.joint_pos
     if np.all(axes == axes[0]):  # one axis for all joints (e.g. every joint about its z)
         a = sum(float(axes[0, k]) * rot[:, k, :] for k in range(3) if axes[0, k] != 0.0)
@@ -175,13 +109,6 @@ def _joint_axes(tree: KinematicTree, rot: jax.Array, pos: jax.Array):
 
 _BLOCK, _ROW = 64, 8  # entries per buffer, per row (XLA fuses concatenations of <= 8)
 _PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
-
-
-def _entry(array, index):
-    """One entry of a parameter array: a Python float for numpy constants (folded)."""
-    if isinstance(array, np.ndarray):
-        return float(array[index])
-    return array[index]
 
 
 def _materialise(values: list, one, like) -> list:
@@ -203,7 +130,9 @@ def _rows(rows: list, one, like) -> jax.Array:
     return jnp.stack([jnp.stack([cp.to_array(v, like) for v in r]) for r in rows]) * one
 
 
-def _link_inertias(tree, plan, rot, pos, params, one, like) -> list:
+def _link_inertias(
+    tree: KinematicTree, lanes: Lanes, rot, pos, params: InertialParams, one, like
+) -> list:
     """Per joint frame: first moment m c (3) kg m and inertia about the world origin (6: xx yy
     zz xy xz yz) kg m^2 of the links it carries, world frame."""
     values = []
@@ -211,11 +140,11 @@ def _link_inertias(tree, plan, rot, pos, params, one, like) -> list:
         r = [[rot[i, k, lane] for k in range(3)] for i in range(3)]
         t = [pos[i, lane] for i in range(3)]
         moment, inertia = [0.0] * 3, [0.0] * 6
-        for b in plan.carried[lane]:
-            offset = plan.frame_of[b][1]
-            mass = _entry(params.mass, (b,))
-            com = [_entry(params.com, (b, k)) for k in range(3)]
-            local = [[_entry(params.inertia, (b, i, k)) for k in range(3)] for i in range(3)]
+        for b in lanes.carried[lane]:
+            offset = lanes.frame_of[b][1]
+            mass = cp.entry(params.mass, (b,))
+            com = [cp.entry(params.com, (b, k)) for k in range(3)]
+            local = [[cp.entry(params.inertia, (b, i, k)) for k in range(3)] for i in range(3)]
             link_rot = cp.mat_mat(r, cp.const_mat(offset[:3, :3]))
             link_pos = cp.vec_add(t, cp.mat_vec(r, cp.const_vec(offset[:3, 3])))
             c = cp.vec_add(link_pos, cp.mat_vec(link_rot, com))
@@ -230,7 +159,9 @@ def _link_inertias(tree, plan, rot, pos, params, one, like) -> list:
     return _materialise(values, one, like)
 
 
-def _momenta(tree, plan, axes, anchors, links, params, one, like):
+def _momenta(
+    tree: KinematicTree, lanes: Lanes, axes, anchors, links, params: InertialParams, one, like
+) -> list:
     """Per joint (columns), for a unit joint rate: spatial velocity v (m), w (3, nv) at the world
     origin, and linear L (kg m) and angular N (kg m^2) momentum (3, nv) of the subtree it
     moves."""
@@ -239,10 +170,10 @@ def _momenta(tree, plan, axes, anchors, links, params, one, like):
     for k in range(nv):
         a = [axes[i, k] for i in range(3)]
         anchor = [anchors[i, k] for i in range(3)]
-        lanes = np.flatnonzero(plan.subtree[k])
-        mass = cp.total(_entry(params.mass, (b,)) for lane in lanes for b in plan.carried[lane])
-        h = [cp.total(links[9 * lane + i] for lane in lanes) for i in range(3)]
-        e = [cp.total(links[9 * lane + 3 + i] for lane in lanes) for i in range(6)]
+        moved = np.flatnonzero(lanes.subtree[k])
+        mass = cp.total(cp.entry(params.mass, (b,)) for lane in moved for b in lanes.carried[lane])
+        h = [cp.total(links[9 * lane + i] for lane in moved) for i in range(3)]
+        e = [cp.total(links[9 * lane + 3 + i] for lane in moved) for i in range(6)]
         io = [[e[0], e[3], e[4]], [e[3], e[1], e[5]], [e[4], e[5], e[2]]]
         if tree.is_hinge[k]:
             v, w = cp.cross(anchor, a), a
@@ -273,15 +204,15 @@ def kinematics_and_dynamics(
     ``site_pose`` and ``mass_matrix``.
     """
     p = tree.nominal if params is None else params
-    gvec = _STANDARD_GRAVITY if gravity_vector is None else jnp.asarray(gravity_vector, float)
-    plan = _plan(tree)
+    gvec = STANDARD_GRAVITY if gravity_vector is None else jnp.asarray(gravity_vector, float)
+    lanes = tree.lanes
     nv = tree.nv
     like = q[0]
     one = 1.0 + 0.0 * q[0]  # a runtime 1: see the module docstring
-    rot, pos = _lane_frames(tree, plan, q)
-    axes, anchors = _joint_axes(tree, rot, pos)
-    links = _link_inertias(tree, plan, rot, pos, p, one, like)
-    v, w, lin, ang = _momenta(tree, plan, axes, anchors, links, p, one, like)
+    rot, pos = lane_frames(tree, q)
+    axes, anchors = joint_axes(tree, rot, pos)
+    links = _link_inertias(tree, lanes, rot, pos, p, one, like)
+    v, w, lin, ang = _momenta(tree, lanes, axes, anchors, links, p, one, like)
     if not tree.is_hinge.all():
         w = w * tree.is_hinge
 
@@ -289,16 +220,16 @@ def kinematics_and_dynamics(
     prod = sum(v[k][:, None] * lin[k][None, :] + w[k][:, None] * ang[k][None, :] for k in range(3))
     row = jax.lax.broadcasted_iota(jnp.int32, (nv, nv), 0)
     col = jax.lax.broadcasted_iota(jnp.int32, (nv, nv), 1)
-    if plan.related.all():
+    if lanes.related.all():
         mass_matrix = jnp.where(row <= col, prod, prod.T)
     else:
-        upper = plan.related & np.triu(np.ones((nv, nv), bool))
+        upper = lanes.related & np.triu(np.ones((nv, nv), bool))
         mass_matrix = jnp.where(upper, prod, jnp.where(upper.T, prod.T, 0.0))
     if tree.armature.any():
         mass_matrix = mass_matrix + np.diag(tree.armature)
 
     body = int(tree.site_body[site])
-    lane, offset = plan.frame_of[body] if body >= 0 else (-1, np.eye(4))
+    lane, offset = lanes.frame_of[body] if body >= 0 else (-1, np.eye(4))
     local = np.eye(4)
     local[:3, :3], local[:3, 3] = tree.site_rot[site], tree.site_pos[site]
     local = offset @ local
@@ -310,8 +241,8 @@ def kinematics_and_dynamics(
         x = pos[:, lane] + sum(float(local[k, 3]) * r[:, k] for k in range(3) if local[k, 3])
         site_rot = sum(r[:, k : k + 1] * local[k : k + 1, :3] for k in range(3))
         jac = jnp.concatenate([v + _cross(w, jnp.broadcast_to(x[:, None], (3, nv))), w], 0)
-        if not plan.subtree[:, lane].all():
-            jac = jac * plan.subtree[:, lane]
+        if not lanes.subtree[:, lane].all():
+            jac = jac * lanes.subtree[:, lane]
     return KinematicsDynamics(
         gravity=g, jacobian=jac, position=x, rotation=site_rot, mass_matrix=mass_matrix
     )

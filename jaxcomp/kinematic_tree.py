@@ -3,9 +3,15 @@
 Everything here is read once from an ``mujoco.MjModel``; the JAX dynamics close over these
 arrays as compile-time constants. Bodies are indexed 0..nb-1 without MuJoCo's world body
 (MuJoCo body ``i`` is tree body ``i - 1``); parent ``-1`` is the world.
+
+``KinematicTree.lanes`` (``Lanes``) is the same tree seen from its joints, the structure every
+kinematics and dynamics function of ``jaxcomp.dynamics`` walks: one frame ("lane") per joint,
+each joint's transform from its parent lane as constant coefficients of sin, 1 - cos and the
+displacement, and every link attached to the lane that carries it.
 """
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import mujoco
 import numpy as np
@@ -73,6 +79,96 @@ class KinematicTree:
     @property
     def nv(self) -> int:
         return len(self.joint_names)
+
+    @cached_property
+    def lanes(self) -> "Lanes":
+        """The tree's joint frames and their constant transforms (built on first use)."""
+        return Lanes.of(self)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices (..., 3, 3) of vectors (..., 3): skew(a) @ b = a x b."""
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack(
+        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class Lanes:
+    """A tree's joints as lanes: one frame per joint, links attached to the lanes.
+
+    Lane j is the frame of joint j's body after joint j moved (a body with several joints
+    chains their lanes). At displacement d = q_j - ref_j (rad or m) the transform of lane j in
+    its parent lane's frame (the world for -1) is
+
+        R = rot_coef[0] + sin(d) rot_coef[1] + (1 - cos d) rot_coef[2]
+        t = pos_coef[0] + sin(d) pos_coef[1] + (1 - cos d) pos_coef[2] + d pos_coef[3]  (m)
+
+    (Rodrigues' formula about the joint's axis through its anchor, after the joint's constant
+    offset from its parent lane; slides translate along their axis).
+    """
+
+    parent: np.ndarray  # (nv,) int: parent lane of each lane, -1 = world
+    frame_of: tuple[tuple[int, np.ndarray], ...]  # per link: (lane or -1 = world, (4, 4)
+    # offset of the link's frame in the lane's)
+    rot_coef: np.ndarray  # (3, 3, 3, nv): R coefficients, see above
+    pos_coef: np.ndarray  # (4, 3, nv) m: t coefficients, see above
+    moving: tuple[int, ...]  # links some joint moves
+    carried: tuple[tuple[int, ...], ...]  # per lane: the links attached to it
+    subtree: np.ndarray  # (nv, nv) bool: [j, l] lane l moves with joint j
+    related: np.ndarray  # (nv, nv) bool: [j, k] joint j moves the link of joint k
+
+    @staticmethod
+    def of(tree: KinematicTree) -> "Lanes":
+        """The lanes of ``tree`` (use ``tree.lanes``, built once per tree)."""
+        nb, nv = tree.nb, tree.nv
+        frame_of: list = [None] * nb
+        parent = np.full(nv, -1)
+        pre = np.zeros((nv, 4, 4))  # parent lane frame -> joint j's frame at q = ref
+        for b in range(nb):
+            offset = np.eye(4)
+            offset[:3, :3], offset[:3, 3] = tree.rot[b], tree.pos[b]
+            p = tree.parent[b]
+            lane, frame = (-1, offset) if p < 0 else (frame_of[p][0], frame_of[p][1] @ offset)
+            for j in tree.body_joints[b]:
+                parent[j], pre[j] = lane, frame
+                lane, frame = j, np.eye(4)
+            frame_of[b] = (lane, frame)
+        rot_coef = np.zeros((3, 3, 3, nv))
+        pos_coef = np.zeros((4, 3, nv))
+        for j in range(nv):
+            rot, pos = pre[j][:3, :3], pre[j][:3, 3]
+            rot_coef[0, ..., j], pos_coef[0, :, j] = rot, pos
+            axis, anchor = tree.joint_axis[j], tree.joint_pos[j]
+            if tree.is_hinge[j]:
+                k1 = skew(axis)
+                for n, k in ((1, k1), (2, k1 @ k1)):
+                    rot_coef[n, ..., j] = rot @ k
+                    pos_coef[n, :, j] = -rot @ k @ anchor
+            else:
+                pos_coef[3, :, j] = rot @ axis
+        moving = tuple(b for b in range(nb) if frame_of[b][0] >= 0)
+        carried: list = [[] for _ in range(nv)]
+        for b in moving:
+            carried[frame_of[b][0]].append(b)
+        subtree = np.eye(nv, dtype=bool)
+        for lane in range(nv):
+            a = parent[lane]
+            while a >= 0:
+                subtree[a, lane] = True
+                a = parent[a]
+        return Lanes(
+            parent=parent,
+            frame_of=tuple(frame_of),
+            rot_coef=rot_coef,
+            pos_coef=pos_coef,
+            moving=moving,
+            carried=tuple(tuple(c) for c in carried),
+            subtree=subtree,
+            related=tree.moves[:, tree.joint_body],
+        )
 
 
 def _name(model: mujoco.MjModel, objtype: mujoco.mjtObj, i: int, fallback: str) -> str:

@@ -20,7 +20,8 @@ from jaxcomp.control import (
     make_impedance_controller,
     make_velocity_controller,
 )
-from jaxcomp.control.impedance import friction_current, limit_current
+from jaxcomp.control.impedance import limit_current
+from jaxcomp.current import friction_current
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.mecanum import TwistLimits
 from jaxcomp.robot_params import RobotParams
