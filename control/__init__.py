@@ -2,8 +2,10 @@
 
 ``make_impedance_controller`` (paper Eq. 3-5, 16; jitted JAX) and its pinocchio twin,
 ``make_velocity_controller`` (the non-compliant reference), ``BaseFollower`` (Eq. 20), and
-their gains (``ImpedanceGains``, ``VelocityGains``, ``BaseGains``). Frames: the arm's base
-frame; SI units (m, rad, s, N, N m, A).
+their gains (``ImpedanceGains``, ``VelocityGains``, ``BaseGains``). ``control.loop.run_control``
+runs a controller at 1 kHz on a ``hardware`` ``Arm`` (and ``Base``), with its ``watchdog``,
+``timing`` and end-effector ``trajectory``. Frames: the arm's base frame; SI units (m, rad, s,
+N, N m, A).
 """
 
 from jaxcomp.control.base_follower import BaseFollower, follow_twist

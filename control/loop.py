@@ -61,11 +61,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from dataclasses import replace as dc_replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import mujoco
 import numpy as np
 
+from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.control.base_follower import BaseFollower
 from jaxcomp.control.gains import BaseGains
 from jaxcomp.control.impedance import ImpedanceController
@@ -73,7 +74,7 @@ from jaxcomp.control.timing import CycleTimer, wait_until
 from jaxcomp.control.trajectory import Static, Trajectory, TrajectorySpec, parse_trajectory
 from jaxcomp.control.velocity import VelocityController
 from jaxcomp.control.watchdog import FAULT, Watchdog, WatchdogTrip, safe_stop
-from jaxcomp.errors import InputError, JaxcompError, ModelError
+from jaxcomp.errors import InputError, ModelError
 from jaxcomp.hardware.interface import Arm, ArmCommand, ArmState, Base, ControlMode, HardwareFault
 from jaxcomp.recording import Recording, RecordingWriter
 from jaxcomp.robot import Robot, load_robot
@@ -81,7 +82,6 @@ from jaxcomp.robot_params import BASE_JOINTS, RobotParams, arm_joint_indices
 
 log = logging.getLogger(__name__)
 
-PERIOD = 0.001  # s, the control period (1 kHz)
 RECORDING = "recording.npz"
 TIMING = "timing.json"
 
@@ -207,14 +207,12 @@ class ArmMount:
 
 def arm_model(robot: Robot | str) -> Robot:
     """The arm-alone model the controllers work in: ``robot`` itself without base joints, else
-    the model named by its ``jaxcomp_arm_model`` custom text, else the built-in name without
-    its ``mobile_`` prefix (``mobile_gen3_lite`` -> ``gen3_lite``)."""
+    the model named by its ``jaxcomp_arm_model`` custom text (``mobile_gen3_lite`` ->
+    ``gen3_lite``)."""
     robot = load_robot(robot)
     if not any(b in robot.joint_names for b in BASE_JOINTS):
         return robot
     name = robot.custom_text("jaxcomp_arm_model")
-    if name is None and robot.name.startswith("mobile_"):
-        name = robot.name.removeprefix("mobile_")
     if name is None:
         raise ModelError(
             f"{robot.name} has base joints; name its arm-alone model in a custom text "
@@ -225,6 +223,13 @@ def arm_model(robot: Robot | str) -> Robot:
     if arm.joint_names != want:
         raise ModelError(f"{arm.name}'s joints {arm.joint_names} are not {robot.name}'s {want}")
     return arm
+
+
+def mobile_model_name(robot: Robot) -> str:
+    """The name of the model of the whole mobile manipulator that carries ``robot``'s arm:
+    its ``jaxcomp_mobile_model`` custom text (``gen3_lite`` -> ``mobile_gen3_lite``), else
+    ``robot``'s own name."""
+    return robot.custom_text("jaxcomp_mobile_model") or robot.name
 
 
 def arm_params(params: RobotParams | None, arm: Robot) -> RobotParams | None:
@@ -536,7 +541,8 @@ def run_control(
             is a base, identity otherwise.
         base_gains: base follower gains (default the paper's ``BaseGains()``).
         model: the recording's ``model`` field and the model the mount is read from; default
-            the controller's robot (with a base: "mobile_gen3_lite" for "gen3_lite").
+            the controller's robot; with a base, the mobile model it names
+            (``mobile_model_name``: "mobile_gen3_lite" for "gen3_lite").
         watchdog: default: current limit = the arm's limits, saturation at the controller's
             limit for ``max_saturated_cycles`` cycles, no stale tolerance, loop-stall limit
             20 ms in real time.
@@ -550,16 +556,88 @@ def run_control(
     switched) and on unexpected exceptions (after the safe stop and saving the recording).
     """
     mode = Mode(mode.value if isinstance(mode, Mode) else str(mode).lower())
+    run = _set_up(
+        arm,
+        base,
+        controller,
+        mode,
+        trajectory,
+        duration,
+        out_dir,
+        realtime,
+        mount=mount,
+        base_gains=base_gains,
+        model=model,
+        watchdog=watchdog,
+        max_saturated_cycles=max_saturated_cycles,
+        base_velocity_compensation=base_velocity_compensation,
+        default_duration=default_duration,
+    )
+    end = _loop(run, arm, base, realtime, on_cycle)
+    result = _finish(run, end)
+    if end.unexpected is not None:
+        raise end.unexpected
+    if end.kind == FAULT:
+        log.warning("control ended on an actuator fault: %s", end.reason)
+    return result
+
+
+@dataclass
+class _Run:
+    """What the set-up of ``run_control`` prepared for the loop: the law and its watchdog,
+    the per-cycle work, the start state (healthy and still), the number of cycles, the
+    output directory, the recorder and the cycle timer."""
+
+    mode: Mode
+    law: _Law
+    watchdog: Watchdog
+    work: _Cycle
+    state: ArmState
+    n_cycles: int
+    duration: float
+    out: Path
+    recorder: _Recorder
+    timer: CycleTimer
+
+
+class _End(NamedTuple):
+    """How the loop of ``run_control`` ended: the ``ControlResult.kind`` and reason, cycles
+    made, s of robot time controlled, stop errors, and an unexpected exception to re-raise
+    after the result is written (None if none)."""
+
+    kind: str
+    reason: str
+    cycles: int
+    duration: float
+    stop_errors: list[str]
+    unexpected: BaseException | None
+
+
+def _set_up(
+    arm: Arm,
+    base: Base | None,
+    controller: ImpedanceController | VelocityController,
+    mode: Mode,
+    trajectory: TrajectorySpec | Trajectory | str | None,
+    duration: float | None,
+    out_dir: str | Path,
+    realtime: bool,
+    *,
+    mount: ArmMount | None,
+    base_gains: BaseGains | None,
+    model: str | None,
+    watchdog: Watchdog | None,
+    max_saturated_cycles: int,
+    base_velocity_compensation: bool,
+    default_duration: float,
+) -> _Run:
+    """The set-up of ``run_control`` (its arguments): check that the arm is healthy and
+    still, resolve the frames and the trajectory, compile and check the first command, open
+    the recording; nothing is switched (a ``JaxcompError`` here leaves the robot as it was)."""
     law = _Law(controller, arm)
     robot = controller.robot
     if model is None:
-        model = robot.name
-        if base is not None and not robot.name.startswith("mobile_"):
-            try:
-                load_robot("mobile_" + robot.name)
-                model = "mobile_" + robot.name
-            except JaxcompError:
-                pass
+        model = mobile_model_name(robot) if base is not None else robot.name
     if mount is None:
         mount = ArmMount.from_model(model) if base is not None else ArmMount()
     out = Path(out_dir)
@@ -609,7 +687,7 @@ def run_control(
     duration = float(duration)
     if not (math.isfinite(duration) and duration > 0):
         raise InputError(f"duration must be a positive number of s, got {duration}")
-    n_cycles = int(round(duration / PERIOD))
+    n_cycles = int(round(duration / CONTROL_PERIOD))
     desired_b = mount.arm_to_base(ee0)  # tracking: the base keeps the EE where it started
 
     # ---- compile and check the first command before anything is switched
@@ -641,15 +719,31 @@ def run_control(
         require_sweep=False,
     )
     recorder = _Recorder(writer, arm.n, 1000, threaded=realtime)
-    timer = CycleTimer(PERIOD, capacity=n_cycles + 2, realtime=realtime)
-    kind, reason = "completed", f"ran the full {duration:g} s"
+    timer = CycleTimer(CONTROL_PERIOD, capacity=n_cycles + 2, realtime=realtime)
+    work.recorder = recorder
+    return _Run(mode, law, wd, work, state, n_cycles, duration, out, recorder, timer)
+
+
+def _loop(
+    run: _Run,
+    arm: Arm,
+    base: Base | None,
+    realtime: bool,
+    on_cycle: Callable[[int, ArmState, np.ndarray, np.ndarray], None] | None,
+) -> _End:
+    """The loop of ``run_control``: switch the arm to the law's mode, then one command per
+    cycle (on 1 kHz deadlines in real time, else in lock step) until ``run.n_cycles`` cycles,
+    a watchdog trip, a hardware fault, a refused command, Ctrl-C or any exception; always
+    ends with ``safe_stop`` (arm in POSITION mode, base stopped)."""
+    law, wd, work, timer = run.law, run.watchdog, run.work, run.timer
+    state = run.state
+    kind, reason = "completed", f"ran the full {run.duration:g} s"
     stop_errors: list[str] = []
     cycles = 0
     t0 = state.t
     unexpected: BaseException | None = None
     switch_interval = sys.getswitchinterval()
-    work.recorder = recorder
-    period_ns = int(PERIOD * 1e9)
+    period_ns = int(CONTROL_PERIOD * 1e9)
     gc_enabled = gc.isenabled()
     try:
         if realtime:
@@ -662,7 +756,7 @@ def run_control(
         if on_cycle is not None:
             on_cycle(0, state, cmd, work.target_w)
         deadline = time.perf_counter_ns() + period_ns
-        for k in range(1, n_cycles + 1):
+        for k in range(1, run.n_cycles + 1):
             if realtime:
                 wait_until(deadline)
             cycles = k
@@ -695,14 +789,7 @@ def run_control(
         if gc_enabled:
             gc.enable()
         timer.finish(state.t - t0)
-        result = _finish(
-            recorder, timer, work, out, kind, reason, cycles, state.t - t0, stop_errors, mode
-        )
-    if unexpected is not None:
-        raise unexpected
-    if kind == FAULT:
-        log.warning("control ended on an actuator fault: %s", reason)
-    return result
+    return _End(kind, reason, cycles, state.t - t0, stop_errors, unexpected)
 
 
 class _Cycle:
@@ -848,17 +935,19 @@ class _Cycle:
         return cmd
 
 
-def _finish(recorder, timer, work, out, kind, reason, cycles, duration, stop_errors, mode):
+def _finish(run: _Run, end: _End) -> ControlResult:
     """Join the recording, write timing.json, fill the result; never raises."""
+    work, out, recorder, timer = run.work, run.out, run.recorder, run.timer
+    kind, reason, cycles = end.kind, end.reason, end.cycles
     result = ControlResult(
         kind=kind,
         reason=reason,
         cycles=cycles,
-        duration=max(float(duration), 0.0),
+        duration=max(float(end.duration), 0.0),
         out_dir=out,
-        stop_errors=list(stop_errors),
+        stop_errors=list(end.stop_errors),
         trajectory=getattr(work.traj, "description", ""),
-        mode=mode.value,
+        mode=run.mode.value,
     )
     if work.samples:
         result.rms_error = math.sqrt(work.sq_sum / work.samples)
@@ -890,11 +979,11 @@ def _finish(recorder, timer, work, out, kind, reason, cycles, duration, stop_err
 
 
 __all__ = [
-    "PERIOD",
     "ArmMount",
     "ControlResult",
     "Mode",
     "arm_model",
     "arm_params",
+    "mobile_model_name",
     "run_control",
 ]

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.robot_params import write_json_atomic
 
 #: Histogram bin edges, us: 25 us wide up to 2 ms, then coarser up to 20 ms, then overflow.
@@ -58,13 +59,15 @@ class CycleTimer:
     """Timing stamps of up to ``capacity`` cycles of period ``period`` s (see module doc).
 
     Args:
-        period: s, the control period (deadline budget), 0.001 at 1 kHz.
+        period: s, the control period (deadline budget), ``CONTROL_PERIOD`` (1 kHz) by default.
         capacity: cycles to keep (grows by doubling when exceeded).
         realtime: whether deadlines are absolute wall-clock ticks (True) or one period after
             each send (lock step).
     """
 
-    def __init__(self, period: float = 0.001, capacity: int = 10_000, realtime: bool = False):
+    def __init__(
+        self, period: float = CONTROL_PERIOD, capacity: int = 10_000, realtime: bool = False
+    ):
         self.period = float(period)
         self.period_ns = int(round(self.period * 1e9))
         self.realtime = bool(realtime)

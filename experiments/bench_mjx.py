@@ -25,7 +25,7 @@ import numpy as np
 
 from jaxcomp import load_robot
 from jaxcomp.hardware import PAPER_FRICTION, PAPER_RATIO
-from jaxcomp.hardware.mjx_sim import (
+from jaxcomp.hardware.mjx import (
     BatchTruth,
     MjxSimulator,
     Move,

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.hardware import ArmCommand, ControlMode, Simulator
 
 
@@ -63,7 +64,7 @@ def sweep(sim: Simulator, seconds: float) -> float:
 def main(seconds: float = 10.0, repeats: int = 3) -> dict:
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})  # one core
-    steps = int(seconds / 0.001)
+    steps = int(seconds / CONTROL_PERIOD)
     rows = {
         "bare physics step (Simulator.step)": [],
         "current-mode control loop (Arm.cycle)": [],

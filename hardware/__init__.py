@@ -3,8 +3,11 @@
 Identification and control drive an ``Arm`` (1 kHz ``cycle``, per-joint POSITION / VELOCITY /
 CURRENT modes, ``move_to``) and a ``Base`` (body twist, odometry) and never know whether a
 ``Simulator`` (MuJoCo, the default backend), a ``KortexArm`` (Kinova Gen3 Lite through
-kortex_api, or its ``KortexEmulator``) or a ``DingoBase`` (ROS 2) is behind them. This package
-knows nothing of identification or control laws.
+kortex_api, or its ``KortexEmulator``) or a ``DingoBase`` (ROS 2) is behind them.
+``jaxcomp.hardware.mjx`` (imported on its own: it loads MJX) runs thousands of simulated arms at
+once, in POSITION mode through a plan or in CURRENT mode driven by a ``Policy``. This package
+knows nothing of identification or control laws. ``DT`` is an alias of
+``jaxcomp.constants.CONTROL_PERIOD``.
 """
 
 from jaxcomp.hardware.dingo import DingoBase

@@ -21,10 +21,12 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError, JaxcompError
 from jaxcomp.hardware.mecanum import TwistLimits
 
-DT = 0.001  # s, the arm's control period (1 kHz)
+DT = CONTROL_PERIOD
+"""s, the arm's control period: an alias of ``jaxcomp.constants.CONTROL_PERIOD``."""
 
 
 class ControlMode(enum.Enum):
@@ -198,6 +200,27 @@ def trapezoid_duration(distance: float, speed: float, accel: float) -> float:
     return 2 * t_acc + (distance - accel * t_acc**2) / speed
 
 
+def move_path(
+    start: np.ndarray,
+    target: np.ndarray,
+    speed: float,
+    accel: float,
+    settle: float = 0.0,
+    dt: float = CONTROL_PERIOD,
+) -> np.ndarray:
+    """The position targets (T, n) rad of one ``Arm.move_to`` from ``start`` to ``target``
+    (n,) rad, row i the target at (i + 1) ``dt`` s: the joint with the longest way follows
+    ``trapezoid`` (``speed`` rad/s, ramps of ``accel`` rad/s^2), the others are scaled to
+    arrive together; then ``settle`` s at the target."""
+    delta = target - start
+    dist = float(np.abs(delta).max())
+    steps = math.ceil(trapezoid_duration(dist, speed, accel) / dt - 1e-9)
+    steps += int(round(settle / dt))
+    times = np.arange(1, steps + 1) * dt
+    frac = trapezoid(dist, speed, accel, times) / dist if dist > 0 else np.ones(steps)
+    return start + frac[:, None] * delta
+
+
 class Arm(abc.ABC):
     """A current-controllable arm at 1 kHz (simulated or real).
 
@@ -207,7 +230,7 @@ class Arm(abc.ABC):
     lives here, identical for every backend.
     """
 
-    dt = DT
+    dt = CONTROL_PERIOD
 
     def __init__(self, joint_names: Sequence[str], limits: ArmLimits, poses: dict | None = None):
         self.joint_names = tuple(joint_names)
@@ -478,14 +501,7 @@ class Arm(abc.ABC):
         if not (np.isfinite(accel) and accel > 0):
             raise InputError(f"accel must be a positive number of rad/s^2, got {accel}")
         self.set_modes(ControlMode.POSITION)
-        start = self._position.copy()
-        delta = target - start
-        dist = float(np.abs(delta).max())
-        steps = math.ceil(trapezoid_duration(dist, speed, accel) / self.dt - 1e-9)
-        steps += int(round(settle / self.dt))
-        times = np.arange(1, steps + 1) * self.dt
-        frac = trapezoid(dist, speed, accel, times) / dist if dist > 0 else np.ones(steps)
-        path = start + frac[:, None] * delta
+        path = move_path(self._position.copy(), target, speed, accel, settle, self.dt)
         state = self.read()
         for ref in path:
             state = self.cycle(ArmCommand(position=ref))

@@ -4,7 +4,8 @@
 (transports, router, session manager, ``BaseClient``, ``BaseCyclicClient``,
 ``ActuatorConfigClient``, the ``*_pb2`` message modules, ``KServerException``), with the same
 method names and message fields, so the adapter runs unchanged against it. Behind them a
-``Simulator`` plays the Gen3 Lite and the emulator enforces the protocol of FIGURES.md:
+``Simulator`` plays the Gen3 Lite and the emulator enforces the protocol of
+shared/reference/FIGURES.md:
 
 - configuration calls over TCP port 10000, ``BaseCyclic`` over UDP port 10001, both in an open
   session; actuator device ids 1, 2, 3, 4, 5 and 7;
@@ -30,7 +31,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from jaxcomp.hardware.interface import DT, ControlMode
+from jaxcomp.constants import CONTROL_PERIOD
+from jaxcomp.hardware.interface import ControlMode
 from jaxcomp.hardware.sim_arm import Simulator
 
 DEVICE_IDS = (1, 2, 3, 4, 5, 7)
@@ -408,7 +410,7 @@ class KortexEmulator:
         steps = 1
         stall = self._due("stall")
         if stall is not None:
-            steps += int(round(stall.seconds / DT))
+            steps += int(round(stall.seconds / CONTROL_PERIOD))
         self.sim.step(steps)
         fault = self._due("fault")
         if fault is not None:
@@ -416,7 +418,8 @@ class KortexEmulator:
             self.sim.hold()
         self._sim_faults()
         t = self.clock()
-        jitter = 0 if self._last_refresh_t is None else abs(t - self._last_refresh_t - DT) * 1e6
+        last = self._last_refresh_t
+        jitter = 0 if last is None else abs(t - last - CONTROL_PERIOD) * 1e6
         self._last_refresh_t = t
         self.max_jitter_us = max(self.max_jitter_us, int(jitter))
         if self._due("stale") is not None and self._last_feedback is not None:

@@ -29,9 +29,10 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError, ModelError
 from jaxcomp.hardware.interaction import Interaction, Push, Rope
-from jaxcomp.hardware.interface import DT, Arm, ArmLimits, ArmState, BaseState, ControlMode
+from jaxcomp.hardware.interface import Arm, ArmLimits, ArmState, BaseState, ControlMode
 from jaxcomp.hardware.mecanum import TwistLimiter, TwistLimits
 from jaxcomp.hardware.truth import TrueRobot
 from jaxcomp.robot import Robot, load_robot
@@ -50,6 +51,27 @@ def _fast_index(adr: np.ndarray) -> slice | np.ndarray:
     if len(adr) and np.all(np.diff(adr) == 1):
         return slice(int(adr[0]), int(adr[-1]) + 1)
     return adr
+
+
+def simulation_spec(robot: Robot, joints: Sequence[int]) -> mujoco.MjSpec:
+    """The simulators' model of ``robot`` (its model file) before compiling: a 1 ms
+    implicitfast step and one actuator per joint index in ``joints``, named
+    ``jaxcomp_drive_<joint>`` (gain 1, affine bias: a servo or a torque source, set by the
+    simulator)."""
+    spec = mujoco.MjSpec.from_file(str(robot.source))
+    spec.option.timestep = CONTROL_PERIOD
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    names = robot.joint_names
+    for j in joints:
+        act = spec.add_actuator(
+            name=f"jaxcomp_drive_{names[j]}",
+            target=names[j],
+            trntype=mujoco.mjtTrn.mjTRN_JOINT,
+            gaintype=mujoco.mjtGain.mjGAIN_FIXED,
+            biastype=mujoco.mjtBias.mjBIAS_AFFINE,
+        )
+        act.gainprm[0] = 1.0
+    return spec
 
 
 class Simulator:
@@ -87,7 +109,7 @@ class Simulator:
         servo_bandwidth: float = 500.0,
         following_error: float = 0.1,
         overspeed: float = 2.0,
-        friction_timeconst: float = 2 * DT,
+        friction_timeconst: float = 2 * CONTROL_PERIOD,
     ):
         self.robot = load_robot(robot)
         if self.robot.source is None:
@@ -160,26 +182,14 @@ class Simulator:
 
     # ----------------------------------------------------------------- model
     def _build(self) -> mujoco.MjModel:
-        spec = mujoco.MjSpec.from_file(str(self.robot.source))
-        spec.option.timestep = DT
-        spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
-        names = self.robot.joint_names
-        for j in list(self.arm_joints) + self.base_joints:
-            act = spec.add_actuator(
-                name=f"jaxcomp_drive_{names[j]}",
-                target=names[j],
-                trntype=mujoco.mjtTrn.mjTRN_JOINT,
-                gaintype=mujoco.mjtGain.mjGAIN_FIXED,
-                biastype=mujoco.mjtBias.mjBIAS_AFFINE,
-            )
-            act.gainprm[0] = 1.0
+        spec = simulation_spec(self.robot, list(self.arm_joints) + self.base_joints)
         try:
             return spec.compile()
         except Exception as exc:
             raise ModelError(f"cannot compile the simulation model: {exc}") from None
 
     def _site_id(self) -> int:
-        name = self.robot.custom_text("jaxcomp_end_effector") or "end_effector"
+        name = self.robot.end_effector
         s = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, name)
         if s < 0:
             raise ModelError(f"the model has no end-effector site {name!r}")
@@ -283,7 +293,7 @@ class Simulator:
             self._over_effort = any(map(operator.gt, map(abs, torque.tolist()), self._effort))
             return
         self._dq_ref = np.where(self._is_vel, velocity, 0.0)
-        self._q_ref = np.where(self._is_pos, position, self._q_ref + self._dq_ref * DT)
+        self._q_ref = np.where(self._is_pos, position, self._q_ref + self._dq_ref * CONTROL_PERIOD)
         torque = current / self._ratio
         servo = self.servo_kp * self._q_ref + self.servo_kv * self._dq_ref
         self._ctrl = np.where(self._is_cur, torque, servo)

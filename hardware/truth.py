@@ -27,6 +27,13 @@ DEFAULT_CURRENT_NOISE = 0.05  # A, standard deviation of the measured current
 DEFAULT_COM_OFFSET = 0.004  # m, COM offsets are drawn uniformly in +-this per axis
 
 
+def friction_loss_torque(friction: np.ndarray, ratio: np.ndarray, floor: float = 0.0) -> np.ndarray:
+    """MuJoCo's ``dof_frictionloss`` (N m) of joints whose Coulomb friction loss is
+    ``friction`` A at current/torque ratio ``ratio`` A/(N m): friction / ratio, at least
+    ``floor`` N m (elementwise; any shapes that broadcast)."""
+    return np.maximum(np.asarray(friction, dtype=float) / np.asarray(ratio, dtype=float), floor)
+
+
 @dataclass
 class TrueRobot:
     """Hidden parameters of a simulated arm.
@@ -62,8 +69,8 @@ class TrueRobot:
 
     @property
     def friction_torque(self) -> np.ndarray:
-        """(n,) Coulomb friction torque, N m (friction loss / ratio)."""
-        return self.params.friction / self.params.ratio
+        """(n,) Coulomb friction torque, N m (``friction_loss_torque``: friction loss / ratio)."""
+        return friction_loss_torque(self.params.friction, self.params.ratio)
 
     @classmethod
     def draw(
@@ -124,8 +131,8 @@ class TrueRobot:
         """Write the truth into ``model`` (a compiled copy of ``robot``'s model), in place.
 
         body_ipos += com_offset (both in the body frame); dof_frictionloss = friction / ratio
-        (N m) with a stiff solver reference (``friction_timeconst`` s) so that the Coulomb
-        friction is delivered in full; dof_damping = viscous.
+        (N m, ``friction_loss_torque``) with a stiff solver reference (``friction_timeconst``
+        s) so that the Coulomb friction is delivered in full; dof_damping = viscous.
         """
         self.params.check(robot)
         for link, off in self.params.com_offset.items():

@@ -19,13 +19,14 @@ import pytest
 from jaxcomp import dynamics
 from jaxcomp.errors import InputError
 from jaxcomp.hardware import DT, ArmCommand, Push, Simulator, TrueRobot
-from jaxcomp.hardware.mjx_sim import (
+from jaxcomp.hardware.mjx import (
     AGREEMENT,
     FAULT_EFFORT,
     FAULT_STOPPED,
     BatchTruth,
     MjxSimulator,
     Move,
+    Policy,
     PushSchedule,
     fault_names,
     reference_trajectory,
@@ -266,7 +267,9 @@ def test_closed_loop_refuses_bad_input():
     state = {"q0": np.zeros((2, 6)), "n": np.zeros(2, int)}
 
     def run(**kw):
-        args = dict(truth=truth, policy=_hold_policy, params=params, state=state, steps=10)
+        args = dict(
+            truth=truth, policy=Policy(None, _hold_policy), params=params, state=state, steps=10
+        )
         args.update(kw)
         return sim.run_closed_loop(**args)
 
@@ -315,7 +318,7 @@ def test_sharded_over_two_devices_agrees_with_the_cpu_simulator():
         """
         import dataclasses, numpy as np
         from jaxcomp.hardware import ArmCommand, Simulator
-        from jaxcomp.hardware.mjx_sim import (AGREEMENT, BatchTruth, Move, MjxSimulator,
+        from jaxcomp.hardware.mjx import (AGREEMENT, BatchTruth, Move, MjxSimulator,
             batch_mesh, reference_trajectory)
         sim = Simulator("gen3_lite", seed=3)
         truth = dataclasses.replace(sim.truth, current_noise=0.0)
@@ -370,8 +373,8 @@ def test_closed_loop_sharded_stops_and_holds():
     script = textwrap.dedent(
         """
         import numpy as np
-        from jaxcomp.hardware.mjx_sim import (BatchTruth, FAULT_EFFORT, FAULT_STOPPED,
-            MjxSimulator, batch_mesh)
+        from jaxcomp.hardware.mjx import (BatchTruth, FAULT_EFFORT, FAULT_STOPPED,
+            MjxSimulator, Policy, batch_mesh)
         from jaxcomp.hardware import TrueRobot
         from jaxcomp.robot import load_robot
 
@@ -388,7 +391,7 @@ def test_closed_loop_sharded_stops_and_holds():
         params = {"k": np.full(3, 20.0), "stop_at": np.array([30, 10**6, 10**6]),
                   "offset": offset}
         sim = MjxSimulator(robot, mesh=batch_mesh(2), chunk_steps=50)
-        rec = sim.run_closed_loop(truth, policy, params, init, 120, every=1, seed=1)
+        rec = sim.run_closed_loop(truth, Policy(init, policy), params, None, 120, every=1, seed=1)
         assert rec.q.shape == (3, 120, 6), rec.q.shape
         assert list(rec.fault_step) == [30, -1, 1], rec.fault_step
         assert list(rec.fault_code) == [FAULT_STOPPED, 0, FAULT_EFFORT], rec.fault_code
@@ -396,7 +399,7 @@ def test_closed_loop_sharded_stops_and_holds():
         held = np.abs(rec.q[0, 30:] - rec.q[0, 29]).max()  # the servo catches the sag
         assert held < 0.02 and np.abs(rec.dq[0, -20:]).max() < 0.01, held
         again = MjxSimulator(robot, chunk_steps=40).run_closed_loop(
-            truth, policy, params, init, 120, every=1, seed=1)
+            truth, Policy(init, policy), params, None, 120, every=1, seed=1)
         err = np.abs(again.q - rec.q).max()
         assert err < 1e-12, err
         print("closed loop sharded ok", held, err)

@@ -1,0 +1,186 @@
+"""The hidden true robot of every MJX world: ``BatchTruth`` and its inertial parameters.
+
+``BatchTruth`` is W ``TrueRobot``s side by side (ratio, friction loss, COM offsets, viscous
+friction, current noise) plus two things the CPU simulator lacks: a point payload at the
+end-effector site and the gravity vector of the mounting. ``true_inertial_params`` gives each
+world's inertial parameters (the nominal model with the truth's COM offsets and payload).
+Units: A/(N m), A, m, N m s/rad, kg, m/s^2.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcomp.errors import InputError
+from jaxcomp.hardware.mjx.model import end_effector_point
+from jaxcomp.hardware.truth import DEFAULT_CURRENT_NOISE, TrueRobot
+from jaxcomp.params import InertialParams, add_point_mass
+from jaxcomp.robot import Robot
+from jaxcomp.robot_params import RobotParams, arm_joint_indices
+
+#: What ``BatchTruth.from_arrays`` broadcasts to a per-joint, per-link or per-world array: a
+#: number or anything ``np.asarray`` makes a float array of.
+ArrayLike = float | Sequence[float] | np.ndarray
+
+
+@dataclass(frozen=True)
+class BatchTruth:
+    """The hidden true robot of every world (W worlds, n arm joints, nb links).
+
+    Attributes:
+        ratio: (W, n) A/(N m), current per joint torque.
+        friction: (W, n) A, Coulomb friction loss as current (torque friction / ratio N m).
+        com_offset: (W, nb, 3) m, added to each link's COM in the link's own frame; rows in
+            ``robot.link_names`` order.
+        current_noise: (W,) A, standard deviation of the measured current's noise.
+        viscous: (W, n) N m s/rad, viscous friction.
+        payload: (W,) kg, point mass at the end-effector site (needs ``payload=True`` sims).
+        gravity: (W, 3) m/s^2, gravity in the robot's base (world) frame: the mounting.
+    """
+
+    ratio: np.ndarray
+    friction: np.ndarray
+    com_offset: np.ndarray
+    current_noise: np.ndarray
+    viscous: np.ndarray
+    payload: np.ndarray
+    gravity: np.ndarray
+
+    def __post_init__(self) -> None:
+        w, n = np.shape(self.ratio)[:2] if np.ndim(self.ratio) == 2 else (-1, -1)
+        if w < 1 or n < 1:
+            raise InputError(f"ratio must have shape (W, n), got {np.shape(self.ratio)}")
+        want = {
+            "ratio": (w, n),
+            "friction": (w, n),
+            "current_noise": (w,),
+            "viscous": (w, n),
+            "payload": (w,),
+            "gravity": (w, 3),
+        }
+        for name, shape in want.items():
+            arr = np.asarray(getattr(self, name), dtype=float)
+            if arr.shape != shape or not np.isfinite(arr).all():
+                raise InputError(f"{name} must be a finite array of shape {shape}")
+            object.__setattr__(self, name, arr)
+        off = np.asarray(self.com_offset, dtype=float)
+        if off.ndim != 3 or off.shape[0] != w or off.shape[2] != 3 or not np.isfinite(off).all():
+            raise InputError(f"com_offset must be a finite (W={w}, nb, 3) array of m")
+        object.__setattr__(self, "com_offset", off)
+        for name in ("friction", "current_noise", "viscous", "payload"):
+            if (getattr(self, name) < 0).any():
+                raise InputError(f"{name} must be >= 0")
+        if (self.ratio <= 0).any():
+            raise InputError("ratio must be > 0 A/(N m)")
+
+    @property
+    def worlds(self) -> int:
+        return self.ratio.shape[0]
+
+    @classmethod
+    def from_arrays(
+        cls,
+        robot: Robot,
+        ratio: ArrayLike,
+        friction: ArrayLike,
+        *,
+        com_offset: ArrayLike | None = None,
+        current_noise: ArrayLike = DEFAULT_CURRENT_NOISE,
+        viscous: ArrayLike | None = None,
+        payload: ArrayLike = 0.0,
+        gravity: ArrayLike | None = None,
+        worlds: int | None = None,
+    ) -> BatchTruth:
+        """Broadcast per-joint (n,) or per-world (W, n) figures to a ``BatchTruth``.
+
+        ``com_offset`` (nb, 3) or (W, nb, 3) m (default 0); ``gravity`` (3,) or (W, 3) m/s^2
+        (default the model's); scalars broadcast to every world. ``worlds`` sets W when no
+        argument has a world axis.
+        """
+        n, nb = len(arm_joint_indices(robot)), len(robot.link_names)
+        # W: the leading axis of any per-world argument (else ``worlds``, else 1)
+        per_world = [(ratio, 2), (friction, 2), (viscous, 2), (com_offset, 3), (gravity, 2)]
+        per_world += [(payload, 1), (current_noise, 1)]
+        sizes = [np.shape(v)[0] for v, nd in per_world if v is not None and np.ndim(v) == nd]
+        w = worlds or max(sizes + [1])
+
+        def bcast(val: ArrayLike, shape: tuple[int, ...], name: str) -> np.ndarray:
+            try:
+                return np.broadcast_to(np.asarray(val, dtype=float), shape).copy()
+            except ValueError:
+                raise InputError(f"{name} of shape {np.shape(val)} does not fit {shape}") from None
+
+        g = robot.model.opt.gravity if gravity is None else gravity
+        return cls(
+            ratio=bcast(ratio, (w, n), "ratio"),
+            friction=bcast(friction, (w, n), "friction"),
+            com_offset=bcast(0.0 if com_offset is None else com_offset, (w, nb, 3), "com_offset"),
+            current_noise=bcast(current_noise, (w,), "current_noise"),
+            viscous=bcast(0.0 if viscous is None else viscous, (w, n), "viscous"),
+            payload=bcast(payload, (w,), "payload"),
+            gravity=bcast(g, (w, 3), "gravity"),
+        )
+
+    @classmethod
+    def from_truths(
+        cls,
+        robot: Robot,
+        truths: Sequence[TrueRobot],
+        *,
+        payload: ArrayLike = 0.0,
+        gravity: ArrayLike | None = None,
+    ) -> BatchTruth:
+        """One world per ``TrueRobot`` (as the CPU ``Simulator`` would use it), plus optional
+        payload (W,) kg and gravity (3,) or (W, 3) m/s^2."""
+        if not truths:
+            raise InputError("truths is empty: give one TrueRobot per world")
+        links = list(robot.link_names)
+        off = np.zeros((len(truths), len(links), 3))
+        for w, t in enumerate(truths):
+            t.params.check(robot)
+            for link, d in t.params.com_offset.items():
+                off[w, robot.link_index(link)] = d
+        n = len(arm_joint_indices(robot))
+        return cls.from_arrays(
+            robot,
+            np.stack([t.ratio for t in truths]),
+            np.stack([t.friction for t in truths]),
+            com_offset=off,
+            current_noise=np.array([t.current_noise for t in truths]),
+            viscous=np.stack([np.zeros(n) if t.viscous is None else t.viscous for t in truths]),
+            payload=payload,
+            gravity=gravity,
+        )
+
+    def true_robot(self, robot: Robot, w: int) -> TrueRobot:
+        """World ``w`` as a ``TrueRobot`` for the CPU ``Simulator`` (payload, gravity dropped)."""
+        offsets = {
+            name: self.com_offset[w, i]
+            for i, name in enumerate(robot.link_names)
+            if np.any(self.com_offset[w, i])
+        }
+        params = RobotParams(robot.name, self.ratio[w], self.friction[w], offsets, method="truth")
+        viscous = self.viscous[w] if np.any(self.viscous[w]) else None
+        return TrueRobot(params, float(self.current_noise[w]), viscous)
+
+
+def true_inertial_params(robot: Robot, truth: BatchTruth) -> InertialParams:
+    """Per-world inertial params (W, nb, ...): nominal + COM offsets, payload folded into the
+    end-effector body (``jaxcomp.params.add_point_mass``: mass, COM and inertia about the
+    COM, link frame)."""
+    p = robot.nominal_params()
+    w = truth.worlds
+    mass = np.broadcast_to(np.asarray(p.mass), (w,) + np.shape(p.mass))
+    com = np.asarray(p.com)[None] + truth.com_offset
+    inertia = np.broadcast_to(np.asarray(p.inertia), (w,) + np.shape(p.inertia))
+    params = InertialParams(jnp.asarray(mass), jnp.asarray(com), jnp.asarray(inertia))
+    if truth.payload.any():
+        body, point = end_effector_point(robot)
+        fold = jax.vmap(add_point_mass, in_axes=(0, None, 0, None))
+        params = fold(params, robot.link_index(body), jnp.asarray(truth.payload), point)
+    return params
