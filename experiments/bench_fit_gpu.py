@@ -2,11 +2,12 @@
 
 ``--count`` recordings of the calibration plan (default: the paper's, ~230 s of sweeps),
 recorded at 1 kHz / ``--every`` (10: 100 Hz, as ``jaxcomp study calibration`` records them),
-each of its own true robot (``study_calibration.draw_truth``: ratios and friction 20-30 % off,
+each of its own true robot (``studies.truth_draw.draw_truth``: ratios and friction 20-30 % off,
 COM offsets of a few mm, 0.05 A current noise). The recordings are computed from the model, as
 MJX would record them in the steady part of the sweeps: q along the plan's 1 kHz reference,
-current = r g_true(q) + l d + noise for the swept joint (g_true: the JAX gravity model with the
-world's COM offsets; generated on the device, not timed). Then, timed separately:
+current = r g_true(q) + l d + noise for the swept joint (Eq. 13, ``current.sweep_current``;
+g_true: ``identify.evaluate.gravity_torque_at``, the JAX gravity model with the world's COM
+offsets; generated on the device, not timed). Then, timed separately:
 
 - moments: each recording reduced to its sweep moments on the host
   (``identify.moments.sweep_moments_batch``, vectorized over the recordings of a block,
@@ -35,18 +36,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcomp import dynamics, load_robot
-from jaxcomp.cli.study_calibration import (
-    TruthSpread,
-    draw_truth,
-    load_study_plan,
-    plan_signal,
-    start_pose,
-)
-from jaxcomp.hardware.interface import DT
-from jaxcomp.hardware.mjx_sim import batch_mesh
+from jaxcomp import load_robot
+from jaxcomp.constants import CONTROL_PERIOD
+from jaxcomp.current import sweep_current
+from jaxcomp.hardware.mjx import batch_mesh
+from jaxcomp.identify.evaluate import gravity_torque_at
 from jaxcomp.identify.jax_fit import fit_batch, fit_model
 from jaxcomp.identify.moments import stack_worlds, sweep_moments_batch
+from jaxcomp.studies.plan_signal import load_study_plan, plan_signal, start_pose
+from jaxcomp.studies.truth_draw import TruthSpread, draw_truth
 
 
 def recordings(robot, truth, signal, every: int, block: int, seed: int):
@@ -54,7 +52,7 @@ def recordings(robot, truth, signal, every: int, block: int, seed: int):
     the model's current along the plan (see the module docstring)."""
     rec = np.arange(0, len(signal.q_ref), every)
     q = signal.q_ref[rec]
-    dq = np.gradient(signal.q_ref, DT, axis=0)[rec]
+    dq = np.gradient(signal.q_ref, CONTROL_PERIOD, axis=0)[rec]
     joint, direction = signal.joint[rec], signal.direction[rec]
     n = q.shape[1]
     swept = np.zeros((len(rec), n))
@@ -65,10 +63,9 @@ def recordings(robot, truth, signal, every: int, block: int, seed: int):
     @jax.jit
     def current(ratio, friction, com, noise, key):
         def one(r, f, c, sigma, k):
-            p = nominal._replace(com=nominal.com + c)
-            g = jax.vmap(lambda x: dynamics.gravity(tree, x, p))(jnp.asarray(q))[:, arm]
+            g = gravity_torque_at(tree, nominal, arm, jnp.asarray(q), c)
             e = jax.random.normal(k, g.shape) * sigma
-            return r * g + f * jnp.asarray(swept) + e
+            return sweep_current(g, jnp.asarray(swept), r, f) + e
 
         return jax.vmap(one)(ratio, friction, com, noise, key)
 
@@ -86,7 +83,7 @@ def recordings(robot, truth, signal, every: int, block: int, seed: int):
         cur = np.asarray(cur)[:k]
         shape = (k,) + q.shape
         yield (
-            (rec + 1) * DT,
+            (rec + 1) * CONTROL_PERIOD,
             np.broadcast_to(q, shape),
             np.broadcast_to(dq, shape),
             cur,
@@ -122,8 +119,9 @@ def main() -> None:
     print(f"backend: {jax.default_backend()}, devices: {[str(d) for d in mesh.devices.flat]}")
     print(
         f"{args.count} recordings of plan {args.plan!r}: {len(plan.sweeps)} sweeps, "
-        f"{len(signal.q_ref) * DT:.0f} s, {-(-len(signal.q_ref) // args.every)} samples each "
-        f"({1 / (DT * args.every):g} Hz)"
+        f"{len(signal.q_ref) * CONTROL_PERIOD:.0f} s, "
+        f"{-(-len(signal.q_ref) // args.every)} samples each "
+        f"({1 / (CONTROL_PERIOD * args.every):g} Hz)"
     )
 
     blocks = list(recordings(robot, truth, signal, args.every, args.block, args.seed))

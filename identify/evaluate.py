@@ -3,6 +3,13 @@
 What the controller needs from identification is the current that holds the arm,
 ``ratio * g(q)`` per joint (Eq. 7 with the COM-corrected model); ratios and COM offsets may
 trade off along directions no sweep determines, but this product may not.
+
+One kernel, ``gravity_current_squares``, computes the error; it is reported two ways, under two
+names: per joint (``gravity_current_error``, ``gravity_current_error_batch``: the calibration
+study's and the paper's Exp. 1 ``gravity_current_error``) and pooled over all joints
+(``gravity_current_error_batch(pooled=True)``: the control study's
+``gravity_current_error_pooled``). Currents in A, ratios in A/(N m), COM offsets in m (link
+frame), poses in rad of the current-controlled joints; default gravity, no payload.
 """
 
 from __future__ import annotations
@@ -15,7 +22,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcomp import dynamics
+from jaxcomp.current import torque_to_current
 from jaxcomp.errors import InputError
+from jaxcomp.kinematic_tree import KinematicTree
+from jaxcomp.params import InertialParams
 from jaxcomp.robot import Robot
 from jaxcomp.robot_params import RobotParams, arm_joint_indices
 
@@ -26,14 +36,91 @@ def random_poses(robot: Robot, count: int, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).uniform(lo, hi, (count, len(lo)))
 
 
+def gravity_torque_at(
+    tree: KinematicTree,
+    nominal: InertialParams,
+    joints: np.ndarray,
+    poses: jax.Array,
+    com_offset: jax.Array,
+) -> jax.Array:
+    """(P, n) N m: g(q) of the joints ``joints`` at ``poses`` (P, nv) rad, for the nominal
+    model with every link's COM moved by ``com_offset`` (nb, 3) m (link frame). Pure;
+    jit/vmap-able."""
+    p = nominal._replace(com=nominal.com + com_offset)
+    return jax.vmap(lambda q: dynamics.gravity(tree, q, p))(poses)[:, joints]
+
+
+def gravity_current_at(
+    tree: KinematicTree,
+    nominal: InertialParams,
+    joints: np.ndarray,
+    poses: jax.Array,
+    ratio: jax.Array,
+    com_offset: jax.Array,
+) -> jax.Array:
+    """(P, n) A: the gravity current r g(q) (Eq. 7) of ``gravity_torque_at``, for ratios
+    ``ratio`` (n,) A/(N m). Pure; jit/vmap-able."""
+    return torque_to_current(gravity_torque_at(tree, nominal, joints, poses, com_offset), ratio)
+
+
+def gravity_current_squares(
+    tree: KinematicTree,
+    nominal: InertialParams,
+    joints: np.ndarray,
+    poses: jax.Array,
+    truth_ratio: jax.Array,
+    truth_com: jax.Array,
+    ratio: jax.Array,
+    com: jax.Array,
+) -> tuple[jax.Array, jax.Array]:
+    """The gravity-current error of W models against W truths, as mean squares over the poses:
+    (error, truth) (W, n) A^2 each, per world and joint.
+
+    error: mean over ``poses`` (P, nv) rad of (I(q) - I_true(q))^2, truth: of I_true(q)^2,
+    with I = ``gravity_current_at`` of ``ratio`` (W, n) A/(N m) and COM offsets ``com``
+    (W, nb, 3) m, I_true of ``truth_ratio`` and ``truth_com``. Pure; jit-able.
+    """
+
+    def current(r: jax.Array, c: jax.Array) -> jax.Array:
+        return gravity_current_at(tree, nominal, joints, poses, r, c)
+
+    true = jax.vmap(current)(truth_ratio, truth_com)  # (W, P, n)
+    err = jax.vmap(current)(ratio, com) - true
+    return jnp.mean(err**2, axis=1), jnp.mean(true**2, axis=1)
+
+
+def _jitted(robot: Robot, kernel: Callable) -> Callable:
+    """``kernel`` (``gravity_current_at`` or ``gravity_current_squares``) of ``robot``'s
+    nominal model and arm joints, jitted once and kept on the robot (one compilation per
+    input shape)."""
+
+    def build() -> Callable:
+        tree, nominal, joints = robot.tree, robot.nominal_params(), arm_joint_indices(robot)
+        return jax.jit(lambda *args: kernel(tree, nominal, joints, *args))
+
+    return robot.cached(("evaluate", kernel.__name__), build)
+
+
+def _full_poses(robot: Robot, poses: np.ndarray) -> np.ndarray:
+    """(P, nv) joint positions: ``poses`` (P, n) rad of the arm joints, 0 elsewhere."""
+    full = np.zeros((len(poses), robot.nv))
+    full[:, arm_joint_indices(robot)] = poses
+    return full
+
+
+def _com_offsets(robot: Robot, params: RobotParams) -> np.ndarray:
+    """(nb, 3) m: the COM offsets of ``params`` for every link (0 where it has none)."""
+    params.check(robot)
+    off = np.zeros((len(robot.link_names), 3))
+    for link, d in params.com_offset.items():
+        off[robot.link_index(link)] = d
+    return off
+
+
 def gravity_current(robot: Robot, params: RobotParams, poses: np.ndarray) -> np.ndarray:
     """(count, n) A: ratio x g(q) of ``params`` at ``poses`` (arm joints, default gravity)."""
-    joints = arm_joint_indices(robot)
-    full = np.zeros((len(poses), robot.nv))
-    full[:, joints] = poses
-    inertial = params.inertial_params(robot)
-    g = jax.jit(jax.vmap(lambda q: dynamics.gravity(robot.tree, q, inertial)))(full)
-    return np.asarray(g)[:, joints] * params.ratio
+    fn = _jitted(robot, gravity_current_at)
+    return np.asarray(fn(_full_poses(robot, poses), params.ratio, _com_offsets(robot, params)))
 
 
 def gravity_current_error(
@@ -41,14 +128,14 @@ def gravity_current_error(
 ) -> np.ndarray:
     """(n,) per joint: RMS error of the predicted gravity current over ``poses``, relative to
     the RMS true gravity current (NaN for a joint gravity never loads)."""
-    true = gravity_current(robot, truth, poses)
-    err = gravity_current(robot, fitted, poses) - true
-    scale = np.sqrt((true**2).mean(0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(scale > 1e-9, np.sqrt((err**2).mean(0)) / scale, np.nan)
-
-
-_BATCH_GRAVITY: dict[tuple, Callable] = {}
+    return gravity_current_error_batch(
+        robot,
+        truth.ratio[None],
+        _com_offsets(robot, truth)[None],
+        fitted.ratio[None],
+        _com_offsets(robot, fitted)[None],
+        poses,
+    )[0]
 
 
 def gravity_current_error_batch(
@@ -59,9 +146,15 @@ def gravity_current_error_batch(
     com: np.ndarray,
     poses: np.ndarray,
     batch: int = 256,
+    *,
+    pooled: bool = False,
 ) -> np.ndarray:
     """``gravity_current_error`` of W params sets against W truths, batched on the default
     backend; (W, n) per world and joint, NaN where the true gravity current is ~0.
+
+    ``pooled``: instead (W,) one number per world, the gravity-current error pooled over all
+    joints: the RMS of the error over ``poses`` and joints together, relative to the RMS of the
+    true gravity current over both (no NaN).
 
     ``truth_ratio``, ``ratio``: (W, n) A/(N m); ``truth_com``, ``com``: (W, nb, 3) m, COM
     offsets of every link (``robot.link_names`` order, link frame) added to the nominal model;
@@ -74,33 +167,18 @@ def gravity_current_error_batch(
     nb = len(robot.link_names)
     if truth_ratio.shape != (w, n) or truth_com.shape != (w, nb, 3) or com.shape != (w, nb, 3):
         raise InputError(f"ratios must be (W, n) = {(w, n)} and COM offsets (W, {nb}, 3)")
-    joints = arm_joint_indices(robot)
-    full = np.zeros((len(poses), robot.nv))
-    full[:, joints] = poses
+    full = _full_poses(robot, poses)
+    fn = _jitted(robot, gravity_current_squares)
     b = max(1, min(int(batch), w))
-    key = (robot.name, str(robot.source), b, full.shape)
-    if key not in _BATCH_GRAVITY:
-        tree, nominal = robot.tree, robot.nominal_params()
-
-        @jax.jit
-        def errors(tr, tc, r, c, q):
-            def current(ratio_w, com_w):
-                p = nominal._replace(com=nominal.com + com_w)
-                g = jax.vmap(lambda x: dynamics.gravity(tree, x, p))(q)[:, joints]
-                return g * ratio_w
-
-            true = jax.vmap(current)(tr, tc)  # (b, P, n)
-            err = jax.vmap(current)(r, c) - true
-            return jnp.sqrt(jnp.mean(err**2, axis=1)), jnp.sqrt(jnp.mean(true**2, axis=1))
-
-        _BATCH_GRAVITY[key] = errors
-    fn = _BATCH_GRAVITY[key]
-    rms, scale = np.zeros((w, n)), np.zeros((w, n))
+    err, true = np.zeros((w, n)), np.zeros((w, n))
     for s in range(0, w, b):
         idx = np.minimum(np.arange(s, s + b), w - 1)
-        e, sc = fn(truth_ratio[idx], truth_com[idx], ratio[idx], com[idx], full)
+        e, t = fn(full, truth_ratio[idx], truth_com[idx], ratio[idx], com[idx])
         k = min(b, w - s)
-        rms[s : s + k], scale[s : s + k] = np.asarray(e)[:k], np.asarray(sc)[:k]
+        err[s : s + k], true[s : s + k] = np.asarray(e)[:k], np.asarray(t)[:k]
+    if pooled:
+        return np.sqrt(err.mean(axis=1)) / np.sqrt(true.mean(axis=1))
+    rms, scale = np.sqrt(err), np.sqrt(true)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(scale > 1e-9, rms / scale, np.nan)
 

@@ -1,8 +1,9 @@
 """`jaxcomp study calibration`: truths, plan signals, batched moments and fits, the report.
 
-MJX compiles for ~20-30 s on a 2-core CPU: one in-process simulator (``study.simulator``) serves
-every run here. The unmarked runs use a tiny plan (joints 1-4, +-25 deg at 60 deg/s, 14 s)
-in 2 worlds recorded at 100 Hz; ``--plan short`` (26 s, every joint) in 4 worlds is slow.
+MJX compiles for ~20-30 s on a 2-core CPU, once per simulator: each run here loads its robot,
+which keeps its own simulator (``studies.setup.simulator``). The unmarked runs use a tiny plan
+(joints 1-4, +-25 deg at 60 deg/s, 14 s) in 2 worlds recorded at 100 Hz; ``--plan short``
+(26 s, every joint) in 4 worlds is slow.
 """
 
 import json
@@ -18,13 +19,13 @@ from click.testing import CliRunner
 
 import jaxcomp
 from jaxcomp.cli import cli
-from jaxcomp.cli import study_calibration as sc
 from jaxcomp.errors import InputError
 from jaxcomp.hardware import PAPER_FRICTION, PAPER_RATIO
-from jaxcomp.hardware.mjx_sim import Move, reference_trajectory
+from jaxcomp.hardware.mjx import Move, reference_trajectory
 from jaxcomp.identify import jax_fit
 from jaxcomp.identify.evaluate import (
     error_statistics,
+    gravity_current,
     gravity_current_error,
     gravity_current_error_batch,
     random_poses,
@@ -32,6 +33,7 @@ from jaxcomp.identify.evaluate import (
 from jaxcomp.identify.moments import sweep_moments, world_moments
 from jaxcomp.identify.plan import CalibrationPlan, Sweep
 from jaxcomp.robot_params import RobotParams
+from jaxcomp.studies import calibration as sc
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 3
@@ -137,6 +139,27 @@ def test_batched_gravity_error_and_statistics(robot):
     assert abs(st["coverage"][1] - 0.95) < 0.015 and st["coverage"][0] < st["coverage"][1]
     st = error_statistics(err, np.full_like(err, 1.0))  # std half the truth: under-covers
     assert st["coverage"][1] < 0.7 and st["spread_over_std"][1] > 1.9
+
+
+def test_pooled_gravity_error_is_one_number_over_poses_and_joints(robot):
+    """The control study's gravity-current error pools the poses and joints of a world: RMS of
+    the error over both, relative to the RMS true gravity current over both."""
+    poses = random_poses(robot, 20, seed=2)
+    truth = sc.draw_truth(robot, 2, 2, sc.TruthSpread())
+    fit_ratio, fit_com = truth.ratio * 0.98, truth.com_offset - 0.002
+    got = gravity_current_error_batch(
+        robot, truth.ratio, truth.com_offset, fit_ratio, fit_com, poses, pooled=True
+    )
+    assert got.shape == (2,)
+    for w in range(2):
+        t, f = (
+            RobotParams(robot.name, r, np.zeros(6), dict(zip(robot.link_names, c, strict=True)))
+            for r, c in ((truth.ratio[w], truth.com_offset[w]), (fit_ratio[w], fit_com[w]))
+        )
+        true = gravity_current(robot, t, poses)
+        err = gravity_current(robot, f, poses) - true
+        want = np.sqrt(np.mean(err**2)) / np.sqrt(np.mean(true**2))
+        np.testing.assert_allclose(got[w], want, rtol=1e-9)
 
 
 @pytest.mark.parametrize(

@@ -1,0 +1,20 @@
+"""The Monte-Carlo studies: thousands of simulated true robots on MJX, each with its own hidden
+truth, run through calibration or the impedance controller and compared with that truth.
+
+The library behind ``jaxcomp study``; it wires hardware (MJX), identify and control together, as
+the command line does, and imports no click. Modules, one concept each:
+
+- ``setup``: the studied robot, its shared MJX simulator and the report folder check;
+- ``truth_draw``: the true robots of the calibration study (``TruthSpread``, ``draw_truth``);
+- ``plan_signal``: a calibration plan as the 1 kHz signals the worlds follow, whole or cut
+  into sweeps simulated side by side;
+- ``plan_recording``: the plan recorded in every world, each sweep reduced to its moments as
+  it streams in;
+- ``calibration_estimates``: both fits' estimates against the truth;
+- ``calibration_statistics``: their statistics over the worlds;
+- ``calibration_figures``: the calibration study's figures;
+- ``calibration``: the calibration study composed (simulate -> reduce -> fit -> report);
+- ``control_policy``: the impedance controller as a per-world closed-loop policy;
+- ``control``: the control study (worlds, pushes, references, model errors, the run);
+- ``control_figures``: the control study's figures.
+"""

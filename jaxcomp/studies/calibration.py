@@ -1,0 +1,396 @@
+"""The calibration study: how well calibration finds thousands of simulated true robots.
+
+N true Gen3 Lite arms are drawn from the seed (``draw_truth``: ratios 20-30 % off nominal,
+friction torques 20-30 % off the paper's, COM offsets of a few mm on every moving link, current
+noise, optional viscous friction); the calibration plan (default:
+``identify.plan_design.default_plan``, the paper's ~230 s of sweeps) is recorded in every
+world at once on MJX (``MjxSimulator``, 1 kHz, float64, worlds sharded over the accelerators), every world is
+fitted with the joint JAX fit in vmapped batches on the accelerator (``jax_fit.fit_batch``) and
+the first M worlds also with the paper's scipy fit (``identify.baseline``). The report compares
+estimates with the truth.
+
+The stages, each in its own module and composed here (``run_study``): ``truth_draw``,
+``plan_signal``, ``plan_recording`` (simulate and reduce), ``jax_fit.fit_batch`` and
+``baseline`` (fit), ``calibration_estimates`` and ``calibration_statistics`` (compare),
+``calibration_figures`` and ``write_outputs`` (report).
+
+Recording (``plan_recording``): the simulator steps at 1 kHz and every ``every``-th state
+(default 10: 100 Hz) is streamed to the host, where each sweep is reduced to its moments as soon
+as its samples are in: only the M baseline worlds keep their whole recording. With the sweeps
+side by side (``simulate(parallel=True)``, the default on an accelerator) every sweep is in
+flight at once, so the host holds about the whole recording of the worlds of a run (4096 worlds
+of the default plan at 100 Hz: ~35 GB; ``--world-batch`` bounds it). The current noise is added
+on the host from a stream per world, so a world's numbers depend neither on how worlds are
+batched nor on the number of devices. Truth draws are per world too: world w is the same for
+every N > w. Worlds that fault (following error, overspeed, joint limit: what stops the CPU
+simulator and the real arm) are counted and left out of the statistics.
+
+Units: SI (rad, A, N m, m, s); COM offsets in each link's own frame; ratio A/(N m); viscous
+friction of the truth N m s/rad, the fit's viscous term A s/rad (= ratio x viscous).
+"""
+
+import dataclasses
+import math
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from jaxcomp.constants import CONTROL_PERIOD
+from jaxcomp.errors import InputError
+from jaxcomp.identify.evaluate import random_poses
+from jaxcomp.identify.jax_fit import fit_batch as batch_fit
+from jaxcomp.identify.jax_fit import fit_model
+from jaxcomp.robot import Robot, load_robot
+from jaxcomp.robot_params import json_ready, write_json_atomic
+from jaxcomp.studies.calibration_estimates import Estimates, jax_estimates, scipy_estimates
+from jaxcomp.studies.calibration_figures import plot_coverage, plot_errors
+from jaxcomp.studies.calibration_statistics import (
+    coverage_summary,
+    cramer_rao_summary,
+    gravity_summary,
+    parameter_table,
+)
+from jaxcomp.studies.plan_recording import simulate
+from jaxcomp.studies.plan_signal import (
+    check_study_plan,
+    load_study_plan,
+    plan_segments,
+    plan_signal,
+    short_plan,
+    start_pose,
+)
+from jaxcomp.studies.setup import MODEL, check_out_dir, simulator
+from jaxcomp.studies.truth_draw import TruthSpread, draw_truth
+
+__all__ = [  # the study, and the stages it composes
+    "FIGURES",
+    "FORMAT",
+    "STUDY_FILE",
+    "WORLDS_FILE",
+    "CalibrationSettings",
+    "StudyOutputs",
+    "TruthSpread",
+    "check_out_dir",
+    "draw_truth",
+    "load_study_plan",
+    "plan_segments",
+    "plan_signal",
+    "plot_coverage",
+    "plot_errors",
+    "run_study",
+    "short_plan",
+    "simulate",
+    "simulator",
+    "start_pose",
+    "study_into",
+    "summary",
+    "write_outputs",
+]
+
+STUDY_FILE = "study.json"
+WORLDS_FILE = "worlds.npz"
+FIGURES = ("errors.png", "coverage.png")
+FORMAT = "jaxcomp-study-calibration"
+
+
+# ----------------------------------------------------------------------------- the study
+@dataclasses.dataclass(frozen=True)
+class CalibrationSettings:
+    """What a calibration study runs, checked when made (InputError).
+
+    Attributes:
+        worlds: simulated true robots N (>= 1). seed: seed of every draw.
+        plan: "default" (the paper's ~230 s of sweeps), "short" or a plan JSON file.
+        every: record every k-th 1 kHz state (10: 100 Hz) for the fits.
+        spread: how the true robots differ from the nominal model (``TruthSpread``).
+        baseline_sample: also fit the first M worlds with the paper's scipy fit (0: none).
+        devices: shard over the first K devices (None: all).
+        world_batch: worlds per MJX run (None: all on an accelerator, one per device on the
+            CPU, where MJX steps a batch of worlds slower than one world at a time).
+        fit_batch: fits per vmapped batch (None: all).
+        poses: random poses of the gravity-current error (drawn from ``seed``).
+        parallel: the plan's sweeps side by side (``simulate``; None: on an accelerator,
+            where a few thousand worlds leave it idle; on the CPU, where steps cost in
+            proportion to the worlds, the sweeps run in turn).
+    """
+
+    worlds: int
+    seed: int = 0
+    plan: str = "default"
+    every: int = 10
+    spread: TruthSpread = TruthSpread()  # frozen: one shared default is safe
+    baseline_sample: int = 16
+    devices: int | None = None
+    world_batch: int | None = None
+    fit_batch: int | None = None
+    poses: int = 1000
+    parallel: bool | None = None
+
+    def __post_init__(self) -> None:
+        check_study_plan(self.plan)
+        checks = {
+            "--worlds": (self.worlds, 1),
+            "--every": (self.every, 1),
+            "--baseline-sample": (self.baseline_sample, 0),
+            "--poses": (self.poses, 1),
+            "--world-batch": (self.world_batch, 1),
+            "--fit-batch": (self.fit_batch, 1),
+        }
+        for name, (value, low) in checks.items():
+            if value is not None and (
+                isinstance(value, bool) or int(value) != value or value < low
+            ):
+                raise InputError(f"{name} must be an integer >= {low}, got {value}")
+
+
+def run_study(
+    settings: CalibrationSettings, *, progress: bool = True, robot: Robot | None = None
+) -> tuple[dict, dict]:
+    """The whole study of ``settings``: (report for study.json, per-world arrays for
+    worlds.npz); see the module docstring. ``progress``: show progress bars; ``robot``: the
+    ``MODEL`` robot to study, whose simulator (``setup.simulator``) and compiled programs it
+    keeps (default: freshly loaded).
+    """
+    worlds, seed, plan, every = settings.worlds, settings.seed, settings.plan, settings.every
+    spread, baseline_sample = settings.spread, settings.baseline_sample
+    world_batch, parallel = settings.world_batch, settings.parallel
+    if baseline_sample:
+        try:
+            import pinocchio  # noqa: F401  (the scipy fit needs it: fail now, not at the end)
+        except ImportError:
+            raise InputError(
+                "--baseline-sample needs pinocchio (pip install pin); use --baseline-sample 0 "
+                "to skip the scipy fit"
+            ) from None
+    t_all = time.perf_counter()
+    robot = load_robot(MODEL) if robot is None else robot
+    the_plan = load_study_plan(robot, plan)
+    signal = plan_signal(the_plan, start_pose(robot))
+    sim = simulator(settings.devices, robot)
+    model = fit_model(robot)
+    truth = draw_truth(robot, worlds, seed, spread)
+    backend, mesh = jax.default_backend(), sim.mesh
+    world_batch = world_batch or (worlds if backend != "cpu" else mesh.size)
+    parallel = backend != "cpu" if parallel is None else bool(parallel)
+    keep = min(baseline_sample, worlds)
+    timing = {"setup": time.perf_counter() - t_all}
+
+    bar = tqdm(
+        total=worlds * len(signal.q_ref),
+        unit="step",
+        unit_scale=True,
+        desc=f"MJX, {worlds} worlds",
+        disable=not progress,
+    )
+    simulated = simulate(
+        sim,
+        truth,
+        signal,
+        seed=seed,
+        every=every,
+        world_batch=world_batch,
+        keep=keep,
+        progress=bar.update,
+        parallel=parallel,
+    )
+    bar.close()
+    timing |= simulated.timing
+
+    t0 = time.perf_counter()
+    bar = tqdm(total=worlds, unit="fit", desc="JAX fits", disable=not progress)
+    fits = batch_fit(
+        model, simulated.moments, batch=settings.fit_batch, mesh=mesh, progress=bar.update
+    )
+    bar.close()
+    timing |= {"fit_jax": time.perf_counter() - t0, "fit_jax_compile": fits.compile_seconds}
+    timing["fit_jax_run"] = fits.seconds
+
+    t0 = time.perf_counter()
+    pose_set = random_poses(robot, settings.poses, seed=seed)
+    jax_est = jax_estimates(robot, model, truth, simulated, fits, pose_set)
+    timing["evaluate"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    bar = tqdm(total=keep, unit="fit", desc="scipy fits", disable=not progress or not keep)
+    scipy_est, failed = scipy_estimates(
+        robot, truth, simulated.recordings, jax_est, pose_set, progress=bar.update
+    )
+    bar.close()
+    timing["fit_scipy"] = time.perf_counter() - t0
+
+    n = model.n
+    jax_table = parameter_table(jax_est, 2 * n)
+    scipy_table = parameter_table(scipy_est, 2 * n) if keep else {}
+    on_m = Estimates(*(x[:keep] if isinstance(x, np.ndarray) else x for x in jax_est))
+    sigma = fits.solution.sigma[jax_est.ok]
+    timing["total"] = time.perf_counter() - t_all
+    report = {
+        "format": FORMAT,
+        "version": 1,
+        "model": robot.name,
+        "seed": seed,
+        "worlds": worlds,
+        "plan": {
+            "name": plan,
+            "sweeps": len(the_plan.sweeps),
+            "steps": len(signal.q_ref),
+            "duration_s": len(signal.q_ref) * CONTROL_PERIOD,
+        },
+        "record_every": every,
+        "record_rate_hz": 1.0 / (CONTROL_PERIOD * every),
+        "truth": dataclasses.asdict(spread),
+        "backend": backend,
+        "devices": [str(d) for d in mesh.devices.flat],
+        "world_batch": world_batch,
+        "parallel_sweeps": parallel,
+        "faulted_worlds": int((simulated.fault_step >= 0).sum()),
+        "jax": {
+            "converged": int(fits.solution.converged.sum()),
+            "used": int(jax_est.ok.sum()),
+            "noise_estimate_median": float(np.median(sigma)) if sigma.size else math.nan,
+            "parameters": jax_table,
+            "gravity_current_error": gravity_summary(
+                np.where(jax_est.ok[:, None], jax_est.gravity, np.nan)
+            ),
+            "on_scipy_worlds": {
+                "parameters": {
+                    k: {"rmse": v["rmse"], "relative_rmse": v.get("relative_rmse")}
+                    for k, v in parameter_table(on_m, 2 * n).items()
+                    if k in scipy_table
+                },
+                "gravity_current_error": gravity_summary(on_m.gravity[on_m.ok]),
+            },
+        },
+        "scipy": {
+            "worlds": keep,
+            "failed": failed,
+            "parameters": scipy_table,
+            "gravity_current_error": gravity_summary(scipy_est.gravity),
+        },
+        "coverage": {"jax": coverage_summary(jax_est), "scipy": coverage_summary(scipy_est)},
+        "cramer_rao": cramer_rao_summary(jax_table, jax_est.names),
+        "timing_s": timing,
+        "throughput": {
+            "world_steps_per_s": simulated.world_steps / max(timing["simulate_stepping"], 1e-9),
+            "jax_fits_per_min": 60.0 * worlds / max(fits.seconds, 1e-9),
+            "scipy_fits_per_min": 60.0 * keep / max(timing["fit_scipy"], 1e-9) if keep else None,
+        },
+    }
+    arrays = {
+        "parameter_names": np.array(jax_est.names),
+        "truth": jax_est.truth,
+        "jax_estimate": jax_est.estimate,
+        "jax_std": jax_est.std,
+        "jax_identified": jax_est.identified,
+        "jax_converged": fits.solution.converged,
+        "jax_ok": jax_est.ok,
+        "jax_noise_estimate": fits.solution.sigma,
+        "jax_gravity_current_error": jax_est.gravity,
+        "scipy_estimate": scipy_est.estimate,
+        "scipy_std": scipy_est.std,
+        "scipy_gravity_current_error": scipy_est.gravity,
+        "fault_step": simulated.fault_step,
+    }
+    return report, arrays
+
+
+# ----------------------------------------------------------------------------- outputs
+def write_outputs(out: Path, report: dict, arrays: dict) -> list[Path]:
+    """Write the figures, ``worlds.npz`` and ``study.json`` (last) into ``out``.
+
+    Everything is written to a staging folder inside ``out`` first and moved in by
+    ``os.replace`` only once all of it is written: an error leaves ``out`` as it was.
+    """
+    stage = Path(tempfile.mkdtemp(prefix=".study-calibration.", dir=out))
+    try:
+        plot_errors(report, arrays, stage / FIGURES[0])
+        plot_coverage(report, arrays, stage / FIGURES[1])
+        np.savez_compressed(stage / WORLDS_FILE, **arrays)
+        write_json_atomic(stage / STUDY_FILE, json_ready(report))
+        names = [*FIGURES, WORLDS_FILE, STUDY_FILE]
+        for name in names:
+            os.replace(stage / name, out / name)
+        return [out / name for name in names]
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
+# ----------------------------------------------------------------------------- one call
+class StudyOutputs(NamedTuple):
+    """What ``study_into`` made: the report (study.json), the per-world arrays (worlds.npz)
+    and the files written."""
+
+    report: dict
+    arrays: dict
+    paths: list[Path]
+
+
+def study_into(
+    out: Path, settings: CalibrationSettings, *, progress: bool = True, robot: Robot | None = None
+) -> StudyOutputs:
+    """``run_study`` and ``write_outputs`` into the folder ``out``, which is checked first
+    (InputError), before minutes of simulation; nothing is written on error."""
+    out = check_out_dir(Path(out))
+    report, arrays = run_study(settings, progress=progress, robot=robot)
+    return StudyOutputs(report, arrays, write_outputs(out, report, arrays))
+
+
+def summary(report: dict) -> str:
+    """A few lines for people: per-joint errors of both fits, coverage, run times."""
+    n = sum(k.startswith("ratio[") for k in report["jax"]["parameters"])
+    jp, sp = report["jax"]["parameters"], report["scipy"]["parameters"]
+    jg, sg = report["jax"]["gravity_current_error"], report["scipy"]["gravity_current_error"]
+
+    def pct(v: float | None) -> str:
+        return "-" if v is None or not math.isfinite(v) else f"{100 * v:.2f}%"
+
+    head = f"{'joint':<6}" + "".join(
+        f"{h:>14}"
+        for h in (
+            "ratio jax",
+            "ratio scipy",
+            "friction jax",
+            "fric. scipy",
+            "g-cur jax",
+            "g-cur scipy",
+        )
+    )
+    lines = [
+        f"{report['worlds']} worlds, plan {report['plan']['name']} "
+        f"({report['plan']['duration_s']:.0f} s), {report['backend']} x{len(report['devices'])}; "
+        f"RMS relative errors (scipy on the first {report['scipy']['worlds']}), "
+        "gravity current: median over worlds",
+        head,
+    ]
+    for j in range(n):
+        r, f = f"ratio[{j}]", f"friction[{j}]"
+        row = [
+            jp[r]["relative_rmse"],
+            sp.get(r, {}).get("relative_rmse"),
+            jp[f]["relative_rmse"],
+            sp.get(f, {}).get("relative_rmse"),
+            jg["median"][j] if jg["median"] else None,
+            sg["median"][j] if sg["median"] else None,
+        ]
+        lines.append(f"{j:<6}" + "".join(f"{pct(v):>14}" for v in row))
+    cov = report["coverage"]["jax"]["identified"]
+    t = report["timing_s"]
+    lines.append(
+        f"coverage of +-1.96 std (JAX, {cov['count']} determined estimates): "
+        f"{pct(cov['coverage_95'])}; z std {cov['z_std']:.2f}"
+    )
+    lines.append(
+        f"time: simulate {t['simulate']:.1f} s (compile {t['simulate_compile']:.1f} s, "
+        f"{report['throughput']['world_steps_per_s']:.3g} world-steps/s), JAX fits "
+        f"{t['fit_jax']:.1f} s (compile {t['fit_jax_compile']:.1f} s, "
+        f"{report['throughput']['jax_fits_per_min']:.3g}/min), scipy {t['fit_scipy']:.1f} s, "
+        f"total {t['total']:.1f} s"
+    )
+    return "\n".join(lines)

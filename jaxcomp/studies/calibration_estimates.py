@@ -1,0 +1,162 @@
+"""Both fits' estimates of the calibration study's worlds against their truth.
+
+The joint JAX fit (``identify.jax_fit.fit_batch``) of every world and the paper's scipy fit
+(``identify.baseline``) of the first M: per parameter the estimate, the truth and the standard
+error the fit reported, and per joint the relative gravity-current error at random poses
+(``identify.evaluate.gravity_current_error_batch``). Units: ratio A/(N m), friction loss A,
+viscous A s/rad (= ratio x the truth's N m s/rad), COM offsets m (link frame), phase shifts rad.
+"""
+
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from jaxcomp.hardware.mjx import BatchTruth
+from jaxcomp.identify.evaluate import gravity_current_error_batch
+from jaxcomp.identify.jax_fit import BatchFit, FitModel, identified, phase_shift
+from jaxcomp.recording import Recording
+from jaxcomp.robot import Robot
+from jaxcomp.robot_params import RobotParams
+from jaxcomp.studies.plan_recording import Simulated
+
+
+class Estimates(NamedTuple):
+    """One method's estimates of W worlds against their truth (P parameters).
+
+    names (P,), units (P,); estimate, truth, std (W, P) (std NaN where none was reported);
+    identified (W, P) bool: the data determine the parameter (``jax_fit.identified``); ok (W,)
+    bool: the fit converged / did not fail; gravity (W, n): relative RMS gravity-current error
+    per joint at random poses (``evaluate.gravity_current_error_batch``).
+    """
+
+    names: list[str]
+    units: list[str]
+    estimate: np.ndarray
+    truth: np.ndarray
+    std: np.ndarray
+    identified: np.ndarray
+    ok: np.ndarray
+    gravity: np.ndarray
+
+    @property
+    def error(self) -> np.ndarray:
+        """(W, P) estimate - truth, NaN for failed fits."""
+        return np.where(self.ok[:, None], self.estimate - self.truth, np.nan)
+
+
+def jax_truth_vector(model: FitModel, truth: BatchTruth) -> np.ndarray:
+    """(W, 3n + K) the truth in the joint fit's parameter order [ratio, friction, viscous
+    (A s/rad: ratio x viscous), com (the fitted links, m)]."""
+    return np.concatenate(
+        [
+            truth.ratio,
+            truth.friction,
+            truth.ratio * truth.viscous,
+            truth.com_offset[:, model.link_ids].reshape(truth.worlds, -1),
+        ],
+        axis=1,
+    )
+
+
+def jax_estimates(
+    robot: Robot,
+    model: FitModel,
+    truth: BatchTruth,
+    simulated: Simulated,
+    fits: BatchFit,
+    poses: np.ndarray,
+) -> Estimates:
+    """The joint fit's ``BatchFit`` of every world as ``Estimates``: ratio, friction, viscous,
+    COM offsets and the phase shifts of each joint's first sweep (rad; the truth's from the
+    true COM offsets through the same sweep coefficients). ``ok``: converged, and the world
+    ran the plan without a fault (a real arm would have stopped)."""
+    sol, n, w = fits.solution, model.n, truth.worlds
+    lin = 3 * n
+    true = jax_truth_vector(model, truth)
+    joint = np.where(simulated.moments.count > 0, simulated.moments.joint, -1)  # -1: empty
+    phases = []
+    for i in range(w):
+        cov = sol.cov[i, lin:, lin:]
+        fit_phase = phase_shift(model, fits.coef[i], joint[i], sol.com[i], cov)
+        true_phase, _ = phase_shift(model, fits.coef[i], joint[i], true[i, lin:], cov)
+        phases.append((fit_phase[0], fit_phase[1], true_phase))
+    phase, phase_std, true_phase = (np.array(x) for x in zip(*phases, strict=True))
+    ident = identified(model, sol.excited, fits.std)
+    nb = len(robot.link_names)
+    fit_com = np.zeros((w, nb, 3))
+    fit_com[:, model.link_ids] = sol.com.reshape(w, -1, 3)
+    return Estimates(
+        names=model.parameter_names() + [f"phase_shift[{j}]" for j in range(n)],
+        units=["A/(N m)"] * n + ["A"] * n + ["A s/rad"] * n + ["m"] * model.K + ["rad"] * n,
+        estimate=np.concatenate([sol.ratio, sol.friction, sol.viscous, sol.com, phase], axis=1),
+        truth=np.concatenate([true, true_phase], axis=1),
+        std=np.concatenate([fits.std, np.where(phase_std > 0, phase_std, np.nan)], axis=1),
+        identified=np.concatenate([ident, ident[:, :n] & (phase_std > 0)], axis=1),
+        ok=np.asarray(sol.converged, bool) & (simulated.fault_step < 0),
+        gravity=gravity_current_error_batch(
+            robot, truth.ratio, truth.com_offset, sol.ratio, fit_com, poses
+        ),
+    )
+
+
+def scipy_estimates(
+    robot: Robot,
+    truth: BatchTruth,
+    recordings: Sequence[Recording],
+    jax: Estimates,
+    poses: np.ndarray,
+    progress: Callable[[], None] | None = None,
+) -> tuple[Estimates, list[dict]]:
+    """The paper's scipy fit of the first M = len(recordings) worlds: ratio and friction as
+    ``Estimates`` (identified where the joint fit's are), and the fits that failed."""
+    if recordings:  # pinocchio, a heavy optional dependency: only when there is a fit to do
+        from jaxcomp.identify.baseline import fit_baseline
+    m, n, nb = len(recordings), truth.ratio.shape[1], len(robot.link_names)
+    est, std = np.full((m, 2 * n), np.nan), np.full((m, 2 * n), np.nan)
+    com = np.zeros((m, nb, 3))
+    failed = []
+    for w, rec in enumerate(recordings):
+        try:
+            p = fit_baseline(rec, robot=robot)
+        except (ValueError, np.linalg.LinAlgError) as exc:  # the paper's fit gives up
+            failed.append({"world": w, "error": str(exc)})
+        else:
+            est[w] = np.r_[p.ratio, p.friction]
+            std[w] = np.r_[_std(p, "ratio", n), _std(p, "friction", n)]
+            for link, off in p.com_offset.items():
+                com[w, robot.link_index(link)] = off
+        if progress is not None:
+            progress()
+    ok = np.isfinite(est).all(axis=1) & jax.ok[:m]  # faulted worlds left out, as for JAX
+    gravity = gravity_current_error_batch(
+        robot,
+        truth.ratio[:m],
+        truth.com_offset[:m],
+        np.where(ok[:, None], est[:, :n], 1.0),
+        com,
+        poses,
+    )
+    gravity[~ok] = np.nan
+    cut = slice(0, 2 * n)
+    return (
+        Estimates(
+            names=jax.names[cut],
+            units=jax.units[cut],
+            estimate=est,
+            truth=jax.truth[:m, cut],
+            std=std,
+            identified=jax.identified[:m, cut] & ok[:, None],
+            ok=ok,
+            gravity=gravity,
+        ),
+        failed,
+    )
+
+
+def _std(params: RobotParams, key: str, n: int) -> np.ndarray:
+    """(n,) a scipy fit's std of ``key`` (NaN where it reported none)."""
+    values = (params.std or {}).get(key)
+    if values is None:
+        return np.full(n, np.nan)
+    return np.array([np.nan if v is None else float(v) for v in values])

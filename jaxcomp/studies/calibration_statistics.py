@@ -1,0 +1,100 @@
+"""Statistics of the calibration study's estimates over the worlds: errors per parameter,
+coverage of the reported standard errors, the Cramer-Rao comparison, gravity-current errors.
+
+Errors are in each parameter's unit (``Estimates.units``); relative errors and gravity-current
+errors are fractions (0.01 = 1 %).
+"""
+
+import math
+import warnings
+from collections.abc import Sequence
+
+import numpy as np
+
+from jaxcomp.identify.evaluate import error_statistics
+from jaxcomp.studies.calibration_estimates import Estimates
+
+#: |error| < Z95 std holds 95 % of the time when the reported std are right.
+Z95 = 1.96
+
+
+def parameter_table(est: Estimates, relative: int) -> dict:
+    """{parameter: {unit, identified, bias, rmse, spread, ..., coverage, spread_over_std}}
+    over the worlds (``evaluate.error_statistics``); the first ``relative`` parameters
+    (ratio and friction) also relative to the truth (``relative_bias``, ``relative_rmse``,
+    ``relative_p95_abs``). ``identified``: fraction of the fits where the data determine it."""
+    err = est.error
+    stats = error_statistics(err, est.std)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = error_statistics(err[:, :relative] / est.truth[:, :relative])
+    share = est.identified[est.ok].mean(axis=0) if est.ok.any() else np.zeros(len(est.names))
+    table = {}
+    for p, name in enumerate(est.names):
+        row = {"unit": est.units[p], "identified": float(share[p])}
+        row |= {k: float(v[p]) for k, v in stats.items()}
+        if p < relative:
+            row |= {f"relative_{k}": float(rel[k][p]) for k in ("bias", "rmse", "p95_abs")}
+        table[name] = row
+    return table
+
+
+def groups(names: Sequence[str]) -> dict[str, np.ndarray]:
+    """Parameter indices by kind: ratio, friction, viscous, com_offset, phase_shift."""
+    kinds = ("ratio", "friction", "viscous", "com_offset", "phase_shift")
+    return {
+        k: np.array([i for i, s in enumerate(names) if s.startswith(k + "[")], int)
+        for k in kinds
+        if any(s.startswith(k + "[") for s in names)
+    }
+
+
+def coverage_summary(est: Estimates) -> dict:
+    """Coverage of +-1.96 std and moments of the z-scores error / std, pooled over the fits
+    and the parameters the data determine: all of them and per kind."""
+
+    def pooled(cols: np.ndarray | slice) -> dict:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            z = est.error[:, cols] / est.std[:, cols]
+        z = z[est.identified[:, cols] & np.isfinite(z)]
+        return {
+            "count": int(z.size),
+            "coverage_95": float(np.mean(np.abs(z) < Z95)) if z.size else math.nan,
+            "z_mean": float(np.mean(z)) if z.size else math.nan,
+            "z_std": float(np.std(z, ddof=1)) if z.size > 1 else math.nan,
+        }
+
+    return {"identified": pooled(slice(None))} | {
+        k: pooled(idx) for k, idx in groups(est.names).items()
+    }
+
+
+def cramer_rao_summary(table: dict, names: Sequence[str]) -> dict:
+    """Per kind: median over the determined parameters of (empirical spread of the errors) /
+    (RMS of the std the fit reported, its Cramer-Rao bound); 1 when they agree."""
+    out = {}
+    for kind, idx in groups(names).items():
+        rows = [table[names[i]] for i in idx if table[names[i]]["identified"] > 0.5]
+        ratios = np.array([r["spread_over_std"] for r in rows], float)
+        ratios = ratios[np.isfinite(ratios)]
+        out[kind] = {
+            "parameters": len(rows),
+            "median_spread_over_std": float(np.median(ratios)) if ratios.size else math.nan,
+            "min": float(ratios.min()) if ratios.size else math.nan,
+            "max": float(ratios.max()) if ratios.size else math.nan,
+        }
+    return out
+
+
+def gravity_summary(errors: np.ndarray) -> dict:
+    """Per joint median, 95th percentile and max over the worlds of the relative gravity-
+    current error per joint (NaN: the joint carries no gravity)."""
+    e = np.asarray(errors, float)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN joints: NaN is the answer
+        if not len(e):
+            return {"median": [], "p95": [], "max": []}
+        return {
+            "median": np.nanmedian(e, axis=0).tolist(),
+            "p95": np.nanpercentile(e, 95, axis=0).tolist(),
+            "max": np.nanmax(e, axis=0).tolist(),
+        }

@@ -1,0 +1,418 @@
+"""The control study: tracking error and compliance of the impedance controller across
+randomized model errors, one MJX world per simulated true robot.
+
+Every world is a Gen3 Lite (arm alone, base frame = world frame) with its own hidden truth,
+driven in CURRENT mode at 1 kHz by the jitted impedance controller (``control.impedance``)
+whose model parameters differ from that truth. One run per world (``MjxSimulator.
+run_closed_loop``), on a timeline of three phases:
+
+1. compliance, target fixed at the end effector's start position: from 0.3 s to 0.5 s the
+   static offset e0 = mean(ee - target) is measured; a push of ``force`` N along the world's
+   direction u ramps up from 0.5 s (five steps of F/5, 20 ms apart, as a hand would) and is
+   released at 1.5 s (u: uniform in the horizontal plane, or on the sphere); e1 = mean(ee -
+   target) over 1.25-1.45 s. The compliance ratio is
+   (e1 - e0) . u / (F u^T K_d^-1 u): 1 for an ideal spring K_d;
+2. recovery until 2.0 s;
+3. tracking from 2.0 s: the paper's half circle (r 0.315 m, 0.101 m/s, lead-in from the start
+   position, ``passes`` passes) in free space for ``duration`` s (default: all of it); the
+   tracking error is the RMS and max of |ee - target| over this phase.
+
+The controller is the wiring of ``control`` to the simulator: ``control_policy.impedance_policy``
+turns the controller's step function into a per-world closed-loop policy whose parameters
+(ratio, friction, COM of every link) are per-world arrays, with the control loop's start
+(previous command = measured current), its saturation watchdog, and the phase metrics in its
+state. The model error of each world's controller (``model_errors``) includes the
+gravity-current error pooled over all joints (``gravity_current_error_pooled``). Units SI (m, s,
+N, A, rad); positions in the world (= arm base) frame.
+"""
+
+import dataclasses
+import math
+import platform
+import time
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from jaxcomp.constants import CONTROL_PERIOD
+from jaxcomp.control import ImpedanceGains
+from jaxcomp.control.trajectory import Trajectory, parse_trajectory
+from jaxcomp.errors import InputError
+from jaxcomp.hardware import PAPER_FRICTION, PAPER_RATIO
+from jaxcomp.hardware.mjx import (
+    SETTLE_STEPS,
+    BatchTruth,
+    PushSchedule,
+    fault_names,
+)
+from jaxcomp.hardware.truth import DEFAULT_COM_OFFSET
+from jaxcomp.identify.evaluate import gravity_current_error_batch, random_poses
+from jaxcomp.robot import Robot, load_robot
+from jaxcomp.robot_params import RobotParams, arm_joint_indices, json_ready, write_json_atomic
+from jaxcomp.studies.control_figures import write_figures
+from jaxcomp.studies.control_policy import (
+    REFERENCE_COLUMNS,
+    controller_params,
+    impedance_policy,
+)
+from jaxcomp.studies.setup import MODEL, check_out_dir, simulator
+
+# the timeline, s from the start of the closed loop
+BASELINE = (0.3, 0.5)  # static offset window
+PUSH_START = 0.5  # first of the ramp's pushes
+RAMP = 5  # pushes of F / RAMP, RAMP_STEP apart
+RAMP_STEP = 0.02
+RELEASE = 1.5  # every push ends here
+HELD = (RELEASE - 0.25, RELEASE - 0.05)  # displacement window
+TRACK_START = 2.0  # the half circle starts here
+POSES = 64  # random poses of the pooled gravity-current model error
+
+STUDY_JSON = "study.json"
+
+
+# ----------------------------------------------------------------------------- the worlds
+def reference_rows(
+    trajectory: Trajectory, start: np.ndarray, steps: int, windows: dict[str, tuple[float, float]]
+) -> np.ndarray:
+    """(steps + 1, 12) rows of the policy's reference at t = k ms: the target (``start`` (3,) m
+    before ``TRACK_START``, then ``trajectory(t - TRACK_START)``) and the window weights
+    ``windows`` {"track"|"base"|"push": (from, to) s}, 1 where from <= t < to."""
+    t = np.arange(steps + 1) * CONTROL_PERIOD
+    rows = np.zeros((steps + 1, REFERENCE_COLUMNS))
+    rows[:, 0:3] = start
+    moving = t >= TRACK_START
+    if moving.any():
+        sample = trajectory.sample(t[moving] - TRACK_START)
+        rows[moving, 0:3], rows[moving, 3:6], rows[moving, 6:9] = sample
+    for col, name in ((9, "track"), (10, "base"), (11, "push")):
+        lo, hi = windows.get(name, (math.inf, math.inf))
+        rows[(t >= lo) & (t < hi), col] = 1.0
+    return rows
+
+
+def ramped_pushes(direction: np.ndarray, force: float) -> PushSchedule:
+    """``PushSchedule`` (W, RAMP): F/RAMP along each world's unit ``direction`` (W, 3), the
+    k-th from PUSH_START + k RAMP_STEP until RELEASE."""
+    w = len(direction)
+    start = PUSH_START + RAMP_STEP * np.arange(RAMP)
+    starts = np.broadcast_to(start, (w, RAMP)).copy()
+    piece = force / RAMP * np.asarray(direction, float)
+    return PushSchedule(starts, RELEASE - starts, np.repeat(piece[:, None], RAMP, axis=1))
+
+
+# ----------------------------------------------------------------------------- the worlds
+def draw_worlds(
+    robot: Robot,
+    worlds: int,
+    seed: int,
+    params_error: float,
+    com_error: float,
+    nominal: bool,
+    noise: float,
+    push: str = "horizontal",
+) -> tuple[BatchTruth, dict[str, np.ndarray], np.ndarray]:
+    """(truth, controller params, push directions (W, 3)) drawn from ``seed``.
+
+    Truth per world: the paper's ratios x U(0.9, 1.1) and friction losses x U(0.8, 1.2), COM
+    offsets U(+-4 mm) per axis on every moving link, current noise ``noise`` A. Controller:
+    ``nominal`` -> the model's nominal ratios, no friction compensation, nominal COM; else
+    "identified-like": ratio and friction x (1 + U(-params_error, params_error)), COM offsets
+    + U(+-com_error) m per axis (moving links). Push directions: ``push`` "horizontal",
+    uniform in the world's xy plane, or "sphere", uniform on the unit sphere (a 10 N push
+    down at ``home`` plus the friction compensation asks joint 1 for more than its 14 N m).
+    """
+    rng = np.random.default_rng(seed)
+    n, nb = len(arm_joint_indices(robot)), len(robot.link_names)
+    moved = robot.tree.moves.any(axis=0)[None, :, None]
+    ratio = np.asarray(PAPER_RATIO) * rng.uniform(0.9, 1.1, (worlds, n))
+    friction = np.asarray(PAPER_FRICTION) * rng.uniform(0.8, 1.2, (worlds, n))
+    com = rng.uniform(-DEFAULT_COM_OFFSET, DEFAULT_COM_OFFSET, (worlds, nb, 3)) * moved
+    truth = BatchTruth.from_arrays(robot, ratio, friction, com_offset=com, current_noise=noise)
+    err = rng.uniform(-1.0, 1.0, (2, worlds, n)) * params_error
+    com_err = rng.uniform(-1.0, 1.0, (worlds, nb, 3)) * com_error * moved
+    if push == "horizontal":
+        angle = rng.uniform(0.0, 2 * np.pi, worlds)
+        direction = np.stack([np.cos(angle), np.sin(angle), np.zeros(worlds)], axis=1)
+    elif push == "sphere":
+        direction = rng.normal(size=(worlds, 3))
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    else:
+        raise InputError(f"push direction must be 'horizontal' or 'sphere', got {push!r}")
+    if nominal:
+        nom = RobotParams.nominal(robot)
+        params = controller_params(
+            robot, np.tile(nom.ratio, (worlds, 1)), np.zeros((worlds, n)), np.zeros_like(com)
+        )
+    else:
+        params = controller_params(
+            robot, ratio * (1 + err[0]), friction * (1 + err[1]), com + com_err
+        )
+    return truth, params, direction
+
+
+def model_errors(
+    robot: Robot, truth: BatchTruth, params: dict[str, np.ndarray]
+) -> dict[str, np.ndarray]:
+    """Per-world model error of the controller's params against the truth: RMS over joints of
+    the relative ratio and friction errors, RMS COM error over the moving links' axes (m), and
+    the pooled relative gravity-current error: RMS of r_c g_c(q) - r_t g_t(q) over ``POSES``
+    random poses and all joints together, relative to the RMS of r_t g_t(q)
+    (``evaluate.gravity_current_error_batch(pooled=True)``)."""
+    nominal_com = np.asarray(robot.nominal_params().com)
+    moved = robot.tree.moves.any(axis=0)
+    true_com = nominal_com[None] + truth.com_offset
+    poses = random_poses(robot, POSES, seed=0)
+    rms = lambda a, axes: np.sqrt(np.mean(a**2, axis=axes))  # noqa: E731
+    return {
+        "ratio_error": rms(params["ratio"] / truth.ratio - 1, 1),
+        "friction_error": rms(params["friction"] / truth.friction - 1, 1),
+        "com_error_m": rms((params["com"] - true_com)[:, moved], (1, 2)),
+        "gravity_current_error_pooled": gravity_current_error_batch(
+            robot,
+            truth.ratio,
+            truth.com_offset,
+            params["ratio"],
+            params["com"] - nominal_com[None],
+            poses,
+            pooled=True,
+        ),
+    }
+
+
+# ----------------------------------------------------------------------------- the study
+def trajectory_for(robot: Robot, passes: int) -> tuple[np.ndarray, Trajectory]:
+    """(start (3,) m, the half circle from it): the end effector at the ``home`` pose (the
+    worlds settle within a fraction of a mm of it; the controller starts from where each is)."""
+    start = np.asarray(robot.site_position(robot.pose("home"), "end_effector"), float)
+    return start, parse_trajectory(f"half-circle:passes={passes}").build(start)
+
+
+def _stats(values: np.ndarray, quantiles: tuple = (50, 95)) -> dict[str, float | None]:
+    values = np.asarray(values, float)
+    names = {5: "p5", 50: "median", 95: "p95"}
+    if values.size == 0:
+        return {names[q]: None for q in quantiles} | {"min": None, "max": None}
+    out = {names[q]: float(np.percentile(values, q)) for q in quantiles}
+    return out | {"min": float(values.min()), "max": float(values.max())}
+
+
+@dataclasses.dataclass(frozen=True)
+class ControlSettings:
+    """What a control study runs (checked by ``run_study``, InputError).
+
+    Attributes:
+        worlds: simulated true robots (>= 1). seed: seed of every draw.
+        duration: s of half-circle tracking after the 2 s compliance phase (None: the whole
+            lead-in and ``passes`` passes). passes: half-circle passes (>= 1).
+        force: N, the push. gains: the controller's ``ImpedanceGains``, or the name of a
+            preset (``ImpedanceGains.preset``; the report then names it).
+        params_error: relative ratio and friction errors of the controller, U(-E, E) per joint
+            (< 1). com_error: m, COM errors of the controller, U(-D, D) per axis of every
+            moving link. nominal: the controller has the model's nominal ratios, no friction
+            compensation and nominal COM instead (``draw_worlds``).
+        noise: A, current noise. push: push directions, "horizontal" or "sphere".
+        devices: shard over the first N devices (None: all).
+    """
+
+    worlds: int = 64
+    seed: int = 0
+    duration: float | None = None
+    passes: int = 2
+    force: float = 10.0
+    gains: ImpedanceGains | str = "tracking"
+    params_error: float = 0.05
+    com_error: float = 0.002
+    nominal: bool = False
+    noise: float = 0.05
+    push: str = "horizontal"
+    devices: int | None = None
+
+
+def run_study(
+    settings: ControlSettings, *, progress: bool = True, robot: Robot | None = None
+) -> dict:
+    """The study's numbers as a JSON-able dict (see the module doc); ``progress``: show a
+    progress bar; ``robot``: the ``MODEL`` robot, whose simulator and policy it keeps
+    (default: freshly loaded)."""
+    t_begin = time.perf_counter()
+    force, duration, nominal = settings.force, settings.duration, settings.nominal
+    params_error, com_error, noise = settings.params_error, settings.com_error, settings.noise
+    seed, push = settings.seed, settings.push
+    worlds, passes = int(settings.worlds), int(settings.passes)
+    if worlds < 1:
+        raise InputError(f"--worlds must be >= 1, got {worlds}")
+    if passes < 1:
+        raise InputError(f"--passes must be >= 1, got {passes}")
+    if not (math.isfinite(force) and force > 0):
+        raise InputError(f"--force must be > 0 N, got {force}")
+    for name, value in (("params-error", params_error), ("com-error", com_error), ("noise", noise)):
+        if not (math.isfinite(value) and value >= 0):
+            raise InputError(f"--{name} must be >= 0, got {value}")
+    if params_error >= 1:
+        raise InputError(f"--params-error must be < 1 (relative), got {params_error}")
+    preset = settings.gains if isinstance(settings.gains, str) else None
+    gains = settings.gains if preset is None else ImpedanceGains.preset(preset)
+    robot = load_robot(MODEL) if robot is None else robot
+    start, trajectory = trajectory_for(robot, passes)
+    if duration is None:
+        duration = trajectory.duration
+    if not (math.isfinite(duration) and duration > 0):
+        raise InputError(f"--duration must be > 0 s, got {duration}")
+    steps = int(round((TRACK_START + duration) / CONTROL_PERIOD))
+    end = TRACK_START + duration
+    windows = {"track": (TRACK_START, end + 1.0), "base": BASELINE, "push": HELD}
+    reference = reference_rows(trajectory, start, steps, windows)
+    truth, params, direction = draw_worlds(
+        robot, worlds, seed, params_error, com_error, nominal, noise, push
+    )
+    stiffness = np.asarray(gains.stiffness, float)
+    expected = force * (direction**2 / stiffness).sum(axis=1)  # m along u: F u^T K^-1 u
+    policy = impedance_policy(robot, gains)
+    sim = simulator(settings.devices, robot)
+    compiled_before = sim.compile_seconds
+    bar = tqdm(total=steps, unit="step", desc=f"{worlds} worlds", disable=not progress)
+
+    def advance(done: int, total: int) -> None:
+        bar.update(done - bar.n)
+
+    try:
+        result = sim.run_closed_loop(
+            truth,
+            policy,
+            params,
+            None,
+            steps,
+            reference=reference,
+            pushes=ramped_pushes(direction, force),
+            initial_pose="home",
+            seed=seed,
+            progress=advance,
+        )
+    finally:
+        bar.close()
+    s = result.state
+    faulted = result.fault_step >= 0
+    fault_t = np.where(faulted, result.fault_step * CONTROL_PERIOD, np.inf)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # a world's figure counts only when its phase ended before any fault
+        rms = np.where(faulted, np.nan, np.sqrt(s["track_sq"] / s["track_n"]))
+        track_max = np.where(faulted, np.nan, s["track_max"])
+        offset = s["base_sum"] / s["base_n"][:, None]
+        moved = s["push_sum"] / s["push_n"][:, None] - offset
+        ratio = (moved * direction).sum(axis=1) / expected
+    measured = fault_t >= HELD[1]
+    ratio, offset = np.where(measured, ratio, np.nan), np.where(measured[:, None], offset, np.nan)
+    errors = model_errors(robot, truth, params)
+    ok = ~faulted
+    timing = dict(sim.last_timing, compile=sim.compile_seconds - compiled_before)
+    run_s = timing["settle"] + timing["plan"]
+    report = {
+        "study": "control",
+        "seed": int(seed),
+        "worlds": worlds,
+        "backend": jax.default_backend(),
+        "devices": [str(d.device_kind) for d in (sim.mesh.devices.flat if sim.mesh else [])],
+        "host": platform.node(),
+        "config": {
+            "model": MODEL,
+            "gains": json_ready(dataclasses.asdict(gains)),
+            "force_N": force,
+            "push_direction": push,
+            "tracking_duration_s": duration,
+            "trajectory": trajectory.description,
+            "passes": passes,
+            "steps": steps,
+            "controller": "nominal" if nominal else "identified-like",
+            "params_error": params_error,
+            "com_error_m": com_error,
+            "current_noise_A": noise,
+            "truth": "paper ratio x U(0.9, 1.1), friction x U(0.8, 1.2), COM U(+-4 mm)",
+            "timeline_s": {
+                "baseline": BASELINE,
+                "push": [PUSH_START, RELEASE],
+                "held": HELD,
+                "tracking": [TRACK_START, end],
+            },
+        },
+        "summary": {
+            "tracking_rms_m": _stats(rms[ok]),
+            "tracking_max_m": _stats(track_max[ok]),
+            "compliance_ratio": _stats(ratio[measured], (5, 50, 95)),
+            "static_offset_m": _stats(np.linalg.norm(offset[measured], axis=1)),
+            "faulted": int(faulted.sum()),
+            "faulted_fraction": float(faulted.mean()),
+            "note": "over the worlds that did not fault before the phase ended",
+        },
+        "per_world": {
+            "tracking_rms_m": rms.tolist(),
+            "tracking_max_m": track_max.tolist(),
+            "compliance_ratio": ratio.tolist(),
+            "static_offset_m": np.linalg.norm(offset, axis=1).tolist(),
+            "static_offset_xyz_m": offset.tolist(),
+            "push_direction": direction.tolist(),
+            "faulted": faulted.tolist(),
+            "fault_time_s": np.where(faulted, fault_t, np.nan).tolist(),
+            "fault": [", ".join(fault_names(c)) for c in result.fault_code],
+            **{k: v.tolist() for k, v in errors.items()},
+        },
+        "timing_s": {
+            "prepare": timing["prepare"],
+            "compile": timing["compile"],
+            "run": run_s,
+            "total": time.perf_counter() - t_begin,
+            "world_steps_per_s": worlds * (steps + SETTLE_STEPS) / run_s if run_s > 0 else None,
+        },
+    }
+    if preset is not None:
+        report["config"]["gains_preset"] = preset
+    return report
+
+
+# ----------------------------------------------------------------------------- outputs
+def write_report(report: dict, out: Path) -> Path:
+    """DIR/study.json, written atomically (NaN as null)."""
+    return write_json_atomic(out / STUDY_JSON, json_ready(report))
+
+
+def _mm(stats: dict, key: str) -> str:
+    v = stats.get(key)
+    return "-" if v is None else f"{1e3 * v:.2f}"
+
+
+def summary(report: dict, path: Path) -> str:
+    """Two lines for people: tracking, compliance, faults; run times and the report's path."""
+    sm, tm = report["summary"], report["timing_s"]
+    c = sm["compliance_ratio"]
+    fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
+    return (
+        f"{report['worlds']} worlds on {report['backend']}: tracking RMS median "
+        f"{_mm(sm['tracking_rms_m'], 'median')} mm, p95 {_mm(sm['tracking_rms_m'], 'p95')} mm, "
+        f"max {_mm(sm['tracking_rms_m'], 'max')} mm; compliance ratio median "
+        f"{fmt(c['median'])} (p5 {fmt(c['p5'])}, p95 {fmt(c['p95'])}); faulted {sm['faulted']}"
+        "\n"
+        f"compile {tm['compile']:.1f} s, run {tm['run']:.1f} s "
+        f"({tm['world_steps_per_s']:.3g} world-steps/s), total {tm['total']:.1f} s -> {path}"
+    )
+
+
+# ----------------------------------------------------------------------------- one call
+class StudyOutputs(NamedTuple):
+    """What ``study_into`` made: the report (study.json) and the files written (the report
+    first, then the figures)."""
+
+    report: dict
+    paths: list[Path]
+
+
+def study_into(
+    out: Path, settings: ControlSettings, *, progress: bool = True, robot: Robot | None = None
+) -> StudyOutputs:
+    """``run_study`` written into the folder ``out``, which is checked first (before minutes
+    of simulation): study.json, then the figures (``control_figures.write_figures``)."""
+    out = check_out_dir(Path(out))
+    report = run_study(settings, progress=progress, robot=robot)
+    path = write_report(report, out)
+    return StudyOutputs(report, [path, *write_figures(report, out)])

@@ -1,0 +1,103 @@
+"""The true robots of the calibration study: how they differ from the nominal model, drawn per
+world from a seed.
+
+Units: ratio A/(N m), friction loss A, friction torque N m, COM offsets m in each link's own
+frame, current noise A, viscous friction N m s/rad.
+"""
+
+import dataclasses
+import math
+
+import numpy as np
+
+from jaxcomp.errors import InputError
+from jaxcomp.hardware import PAPER_FRICTION, PAPER_RATIO
+from jaxcomp.hardware.mjx import BatchTruth
+from jaxcomp.identify.jax_fit import fit_model
+from jaxcomp.robot import Robot
+from jaxcomp.robot_params import RobotParams
+
+#: Seed stream of the truth draws: SeedSequence([seed, TRUTH_STREAM, quantity]).
+TRUTH_STREAM = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class TruthSpread:
+    """How the true robots differ from the nominal model.
+
+    Attributes:
+        model_error: (lo, hi): each actuator type's current/torque ratio is off its nominal
+            (Kinova's) by a factor 1 +- U(lo, hi), random sign; each joint's Coulomb friction
+            torque off the paper's (``PAPER_FRICTION / PAPER_RATIO``) by 1 +- U(lo, hi), the
+            sign turned to - where + would leave less than ``headroom`` of the effort limit
+            (the friction loss in A is then ratio x torque).
+        type_spread: ratios of one actuator type differ by a further U(-s, s) (relative).
+        com_offset: m, COM offsets U(-c, c) per axis of every moving link (link frame).
+        noise: A, standard deviation of the current noise, every world.
+        viscous: N m s/rad, viscous friction U(0, v) per joint (0: none).
+        headroom: fraction of each joint's effort limit left free of friction: the default
+            plan lets gravity use 60 % of it, and a robot whose friction takes the rest cannot
+            follow its sweeps (joint 1 of the paper's arm already spends 34 % on friction).
+    """
+
+    model_error: tuple[float, float] = (0.2, 0.3)
+    type_spread: float = 0.03
+    com_offset: float = 0.004
+    noise: float = 0.05
+    viscous: float = 0.0
+    headroom: float = 0.65
+
+    def __post_init__(self) -> None:
+        lo, hi = (float(v) for v in self.model_error)
+        if not 0 <= lo <= hi < 1:
+            raise InputError(f"--model-error must satisfy 0 <= LO <= HI < 1, got ({lo}, {hi})")
+        for name in ("type_spread", "com_offset", "noise", "viscous", "headroom"):
+            v = float(getattr(self, name))
+            if not (math.isfinite(v) and v >= 0):
+                raise InputError(f"--{name.replace('_', '-')} must be a finite number >= 0")
+        if self.type_spread >= 1 or self.headroom >= 1:
+            raise InputError("type spread and headroom must be < 1")
+
+
+def draw_truth(robot: Robot, worlds: int, seed: int, spread: TruthSpread) -> BatchTruth:
+    """``BatchTruth`` of ``worlds`` true robots drawn from ``seed`` (see ``TruthSpread``).
+
+    Each quantity has its own stream and world w is row w of it, so world w is the same for
+    any ``worlds`` > w. Friction torques scale the paper's for a 6-joint arm, else 0.1 N m.
+    Payload 0, gravity the model's (upright).
+    """
+    model = fit_model(robot)
+    n, nb = model.n, len(robot.link_names)
+    types = sorted(set(model.types))
+    type_of = np.array([types.index(t) for t in model.types])
+
+    def rng(k: int) -> np.random.Generator:
+        return np.random.default_rng([seed, TRUTH_STREAM, k])
+
+    def off(k: int, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:  # U(lo, hi), sign
+        return rng(k).uniform(*spread.model_error, shape), np.where(
+            rng(k + 1).random(shape) < 0.5, -1.0, 1.0
+        )
+
+    ratio0 = RobotParams.nominal(robot).ratio
+    mag, sign = off(0, (worlds, len(types)))
+    ratio = ratio0 * (1 + sign * mag)[:, type_of]
+    ratio *= 1 + rng(2).uniform(-1, 1, (worlds, n)) * spread.type_spread
+    paper = np.asarray(PAPER_FRICTION) / np.asarray(PAPER_RATIO)
+    torque0 = paper if n == len(paper) else np.full(n, 0.1)
+    mag, sign = off(3, (worlds, n))
+    effort = np.abs(robot.model.jnt_actfrcrange).max(axis=1)[model.joints]  # N m
+    sign = np.where(torque0 * (1 + mag) > (1 - spread.headroom) * effort, -1.0, sign)
+    friction = ratio * torque0 * (1 + sign * mag)
+    moved = np.zeros(nb, bool)
+    moved[model.link_ids] = True
+    com = rng(5).uniform(-1, 1, (worlds, nb, 3)) * spread.com_offset * moved[None, :, None]
+    viscous = rng(6).uniform(0, 1, (worlds, n)) * spread.viscous
+    return BatchTruth.from_arrays(
+        robot, ratio, friction, com_offset=com, current_noise=spread.noise, viscous=viscous
+    )
+
+
+def truth_rows(truth: BatchTruth, rows: slice | np.ndarray) -> BatchTruth:
+    """The worlds ``rows`` of a ``BatchTruth``."""
+    return type(truth)(**{f.name: getattr(truth, f.name)[rows] for f in dataclasses.fields(truth)})
