@@ -36,8 +36,8 @@ class SweepMoments(NamedTuple):
 
     joint (S,) int: the swept joint. hold (S, n) rad: the held pose of the sweep, the mean of
     q over every ``HOLD_STRIDE``-th steady sample (the swept joint's entry is irrelevant).
-    moments (S, 6, 6): sum of psi psi^T (see the module docstring). count (S,): steady samples. gravity (3,) m/s^2; payload_mass kg;
-    payload_com (3,) m, end-effector frame.
+    moments (S, 6, 6): sum of psi psi^T (see the module docstring). count (S,): steady
+    samples. gravity (3,) m/s^2; payload_mass kg; payload_com (3,) m, end-effector frame.
     """
 
     joint: np.ndarray

@@ -6,8 +6,8 @@ noise, optional viscous friction); the calibration plan (default:
 ``identify.plan_design.default_plan``, the paper's ~230 s of sweeps) is recorded in every
 world at once on MJX (``MjxSimulator``, 1 kHz, float64, worlds sharded over the
 accelerators), every world is fitted with the joint JAX fit in vmapped batches on the
-accelerator (``jax_fit.fit_batch``) and the first M worlds also with the paper's scipy fit (``identify.baseline``). The report compares
-estimates with the truth.
+accelerator (``jax_fit.fit_batch``) and the first M worlds also with the paper's scipy fit
+(``identify.baseline``). The report compares estimates with the truth.
 
 The stages, each in its own module and composed here (``run_study``): ``truth_draw``,
 ``plan_signal``, ``plan_recording`` (simulate and reduce), ``jax_fit.fit_batch`` and
