@@ -1,4 +1,4 @@
-"""Benchmark: the whole 1 kHz control loop on the simulated Gen3 Lite (issue 5).
+"""Benchmark: the whole 1 kHz control loop on the simulated Gen3 Lite.
 
 Four parts, each optional:
 
@@ -16,7 +16,7 @@ Four parts, each optional:
   the platform itself the same way: a loop that only waits for each 1 ms deadline and spins
   ``--baseline-work`` us (no Python objects, no JAX), so a shared or virtual machine's own
   scheduling jitter can be told apart from the loop's;
-- ``--behaviour``: issue 5's behaviour for each gains preset (the paper's, the paper's with the
+- ``--behaviour``: controller behaviour for each gains preset (the paper's, the paper's with the
   motion-torque friction direction, ``ImpedanceGains.tracking()``), with params identified by
   the joint fit on a simulated calibration (made here, ~45 s, or read from a ``jaxcomp
   calibrate`` folder with ``--calibration DIR``): half-circle RMS error, F/K of steady pushes,
@@ -425,7 +425,7 @@ def main() -> None:
     parser.add_argument("--rt-priority", type=int, default=50, help="SCHED_FIFO priority, 0: off")
     parser.add_argument("--baseline-work", type=float, default=300.0, help="us (baseline loop)")
     parser.add_argument("--profile", action="store_true", help="time each part of a cycle")
-    parser.add_argument("--behaviour", action="store_true", help="issue 5's behaviour table")
+    parser.add_argument("--behaviour", action="store_true", help="the controller's behaviour table")
     parser.add_argument("--core", type=int, help="pin the process to this CPU core")
     parser.add_argument("--calibration", help="a `jaxcomp calibrate` folder (params, truth)")
     parser.add_argument("--json", help="also write the figures to this JSON file")

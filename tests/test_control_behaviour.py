@@ -1,4 +1,4 @@
-"""Issue 5's behaviour in the simulator, with the full friction of the paper's arm.
+"""The controller's behaviour in the simulator, with the full friction of the paper's arm.
 
 The robot is the one the session's simulated calibration recorded (``sim_calibration``: the
 default truth of seed 11, i.e. the paper's ratios and full friction losses, COM offsets of a few

@@ -210,7 +210,13 @@ def control(
 
     from jaxcomp.control.gains import ImpedanceGains
     from jaxcomp.control.impedance import make_impedance_controller
-    from jaxcomp.control.loop import ArmMount, arm_model, arm_params, run_control
+    from jaxcomp.control.loop import (
+        ArmMount,
+        arm_model,
+        arm_params,
+        mobile_model_name,
+        run_control,
+    )
     from jaxcomp.control.trajectory import parse_trajectory
     from jaxcomp.control.velocity import make_velocity_controller
     from jaxcomp.robot import load_robot
@@ -263,7 +269,9 @@ def control(
             except ImportError as exc:
                 click.echo(f"no base: {exc}", err=True)
                 base = None
-            robot = load_robot("mobile_gen3_lite" if base is not None else "gen3_lite")
+            robot = load_robot("gen3_lite")
+            if base is not None:
+                robot = load_robot(mobile_model_name(robot))
         arm_robot = arm_model(robot)
         params = None
         if params_file is not None:
