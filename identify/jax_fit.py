@@ -47,7 +47,6 @@ robot's compiled model (not its name or file), so an edited model never reuses s
 
 from __future__ import annotations
 
-import hashlib
 import os
 import threading
 import time
@@ -59,7 +58,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
@@ -141,14 +139,6 @@ class Solution(NamedTuple):
     rss: jax.Array  # residual sum of squares over the steady samples, A^2
 
 
-def _fingerprint(robot: Robot) -> str:
-    """SHA-256 of the robot's compiled model (MuJoCo's binary MJB): equal for equal models,
-    different after any edit, whatever the name or file."""
-    buffer = np.empty(mujoco.mj_sizeModel(robot.model), np.uint8)
-    mujoco.mj_saveModel(robot.model, None, buffer)
-    return hashlib.sha256(buffer.tobytes()).hexdigest()
-
-
 @dataclass(frozen=True, eq=False)
 class FitModel:
     """What a fit needs of the robot: its current-controlled joints, the moving links whose
@@ -178,7 +168,7 @@ class FitModel:
     @cached_property
     def _identity(self) -> tuple:
         return (
-            _fingerprint(self.robot),
+            self.robot.digest,
             tuple(int(j) for j in self.joints),
             self.links,
             tuple(int(i) for i in self.link_ids),

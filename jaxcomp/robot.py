@@ -5,6 +5,8 @@ of ``jaxcomp.dynamics`` that close over the model's constants. Units: q in rad (
 (slide), dq in rad/s or m/s, torques in N m or N, positions in m, world (base) frame.
 """
 
+import hashlib
+import weakref
 from collections.abc import Callable, Hashable
 from functools import cached_property
 from pathlib import Path
@@ -51,12 +53,36 @@ def _compile(name_or_path: str | Path) -> tuple[str, Path, mujoco.MjModel]:
     return name, path.resolve(), model
 
 
+def model_digest(model: mujoco.MjModel) -> str:
+    """SHA-256 of a compiled model (MuJoCo's binary MJB): equal for equal models, different
+    after any edit, whatever the name or file."""
+    buffer = np.empty(mujoco.mj_sizeModel(model), np.uint8)
+    mujoco.mj_saveModel(model, None, buffer)
+    return hashlib.sha256(buffer.tobytes()).hexdigest()
+
+
+#: The robots loaded and still in use, by (name, file, model digest): weak, so a robot nobody
+#: holds is freed, and keyed on the compiled content, so an edited file gives a new robot.
+_IN_USE: "weakref.WeakValueDictionary[tuple[str, str, str], Robot]" = weakref.WeakValueDictionary()
+
+
 def load_robot(name_or_path: "str | Path | Robot") -> "Robot":
-    """A ``Robot`` from a built-in name (``builtin_models()``) or an MJCF / URDF path."""
+    """A ``Robot`` from a built-in name (``builtin_models()``) or an MJCF / URDF path.
+
+    While a robot loaded from the same, unchanged model is still in use somewhere, that robot is
+    returned, so what it keeps (``Robot.cached``: compiled functions, plans, simulators) serves
+    every caller.
+    """
     if isinstance(name_or_path, Robot):
         return name_or_path
     name, path, model = _compile(name_or_path)
-    return Robot(model, name=name, source=path)
+    key = (name, str(path), model_digest(model))
+    robot = _IN_USE.get(key)
+    if robot is None:
+        robot = Robot(model, name=name, source=path)
+        robot.__dict__["digest"] = key[2]  # the cached property, already computed
+        _IN_USE[key] = robot
+    return robot
 
 
 class Robot:
@@ -76,6 +102,11 @@ class Robot:
 
     def __repr__(self) -> str:
         return f"Robot({self.name!r}, joints={list(self.joint_names)})"
+
+    @cached_property
+    def digest(self) -> str:
+        """SHA-256 of the compiled model (``model_digest``): identifies the model's content."""
+        return model_digest(self.model)
 
     # ----------------------------------------------------------------- names and constants
     @property

@@ -24,6 +24,21 @@ def test_builtin_models_load_with_expected_joints():
     assert list(mobile.tree.is_hinge[:3]) == [False, False, True]
 
 
+def test_a_model_in_use_is_loaded_once_and_an_edited_one_anew(gen3, tmp_path):
+    """load_robot returns the robot already in use for the same model, with what it keeps."""
+    again = jaxcomp.load_robot("gen3_lite")
+    assert again is gen3
+    assert again.cached("probe", object) is gen3.cached("probe", object)
+    assert jaxcomp.load_robot(gen3.source) is gen3  # the same file by its path
+    edited = tmp_path / "gen3_lite.xml"
+    edited.write_text(gen3.source.read_text().replace('mass="', 'mass="1', 1))
+    other = jaxcomp.load_robot(edited)
+    assert other is not gen3 and other.digest != gen3.digest
+    assert jaxcomp.load_robot(edited) is other
+    edited.write_text(gen3.source.read_text())  # the same path, edited back: a new robot
+    assert jaxcomp.load_robot(edited) is not other
+
+
 def test_api_shapes_and_values(gen3):
     q = gen3.pose("preferred")
     assert gen3.joint_names == tuple(f"joint_{k}" for k in range(6))
