@@ -1,6 +1,7 @@
 """The joint JAX fit: accuracy against the truth and the scipy baseline, standard errors,
 identifiability handling, several recordings, failure modes."""
 
+import hashlib
 import json
 
 import numpy as np
@@ -10,6 +11,7 @@ from click.testing import CliRunner
 
 import jaxcomp
 from jaxcomp.cli import cli
+from jaxcomp.errors import InputError
 from jaxcomp.identify import jax_fit
 from jaxcomp.identify.baseline import fit_baseline
 from jaxcomp.identify.plan_design import default_plan
@@ -185,6 +187,30 @@ def test_spread_over_repetitions_matches_reported_standard_errors(sim_calibratio
         assert np.all(ratio < 1.2), (field, ratio)
         if field != "ratio":  # ratios lean on the prior along the mass scale: spread smaller
             assert np.all(ratio > 0.8), (field, ratio)
+
+
+def test_cli_fit_never_writes_over_its_inputs(synthetic_fit, tmp_path):
+    """An --out or --plot that names an input (or each other) is refused; nothing changes."""
+    rec, _ = synthetic_fit
+    path = rec.save(tmp_path / "rec.npz")
+    before = hashlib.sha256(path.read_bytes()).hexdigest()
+    runner = CliRunner()
+    for args, message in [
+        (["--out", str(path)], "--out"),
+        (["--out", str(tmp_path / "p.json"), "--plot", str(tmp_path / "." / "rec.npz")], "--plot"),
+        (["--each", "--out", str(path)], "--out"),
+    ]:
+        result = runner.invoke(cli, ["fit", str(path), *args])
+        assert result.exit_code != 0
+        assert isinstance(result.exception, InputError), result.output
+        assert message in str(result.exception) and "also an input" in str(result.exception)
+    same = tmp_path / "same.png"
+    result = runner.invoke(cli, ["fit", str(path), "--out", str(same), "--plot", str(same)])
+    assert isinstance(result.exception, InputError) and "also given as --out" in str(
+        result.exception
+    )
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.npz"]
 
 
 def test_cli_fit_writes_params_and_refuses_bad_input(synthetic_fit, tmp_path):

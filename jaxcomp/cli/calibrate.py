@@ -29,6 +29,22 @@ def _fit(recordings, method: str):
     return fit_baseline(recordings[0])
 
 
+def _check_outputs(inputs: tuple[str, ...], outputs: dict[str, str | None]) -> None:
+    """One clear error (InputError) when an output file would replace an input or another
+    output, before anything is read or written."""
+    given = {Path(p).resolve(): p for p in inputs}
+    taken: dict[Path, str] = {}
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        where = Path(path).resolve()
+        if where in given:
+            raise InputError(f"{option} {path} is also an input: it would replace the recording")
+        if where in taken:
+            raise InputError(f"{option} {path} is also given as {taken[where]}")
+        taken[where] = option
+
+
 def _table(columns: dict, links: list[str]) -> str:
     """Parameters side by side: one column per params set."""
     names = list(columns)
@@ -199,6 +215,7 @@ def fit(recordings, method, each, out_file, plot_file) -> None:
     from jaxcomp.recording import load_recording
     from jaxcomp.robot_params import write_json_atomic
 
+    _check_outputs(recordings, {"--out": out_file, "--plot": plot_file})
     recs = [load_recording(p) for p in recordings]
     start = time.perf_counter()
     if each:
