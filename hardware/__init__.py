@@ -6,14 +6,12 @@ CURRENT modes, ``move_to``) and a ``Base`` (body twist, odometry) and never know
 kortex_api, or its ``KortexEmulator``) or a ``DingoBase`` (ROS 2) is behind them.
 ``jaxcomp.hardware.mjx`` (imported on its own: it loads MJX) runs thousands of simulated arms at
 once, in POSITION mode through a plan or in CURRENT mode driven by a ``Policy``. This package
-knows nothing of identification or control laws. ``DT`` is an alias of
-``jaxcomp.constants.CONTROL_PERIOD``.
+knows nothing of identification or control laws.
 """
 
 from jaxcomp.hardware.dingo import DingoBase
 from jaxcomp.hardware.interaction import Push, Rope
 from jaxcomp.hardware.interface import (
-    DT,
     Arm,
     ArmCommand,
     ArmLimits,
@@ -31,7 +29,6 @@ from jaxcomp.hardware.sim_base import SimBase
 from jaxcomp.hardware.truth import PAPER_FRICTION, PAPER_RATIO, TrueRobot
 
 __all__ = [
-    "DT",
     "PAPER_FRICTION",
     "PAPER_RATIO",
     "Arm",

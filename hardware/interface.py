@@ -25,9 +25,6 @@ from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError, JaxcompError
 from jaxcomp.hardware.mecanum import TwistLimits
 
-DT = CONTROL_PERIOD
-"""s, the arm's control period: an alias of ``jaxcomp.constants.CONTROL_PERIOD``."""
-
 
 class ControlMode(enum.Enum):
     """Per-joint control mode."""

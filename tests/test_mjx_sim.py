@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 
 from jaxcomp import dynamics
+from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
-from jaxcomp.hardware import DT, ArmCommand, Push, Simulator, TrueRobot
+from jaxcomp.hardware import ArmCommand, Push, Simulator, TrueRobot
 from jaxcomp.hardware.mjx import (
     AGREEMENT,
     FAULT_EFFORT,
@@ -187,10 +188,11 @@ def _residual(robot, rec, w, params, gravity, kv, ratio):
     """Friction-free world w: applied torque minus (M + dt kv) qacc + C dq + g (N m), at every
     step the servo is not clamped; the step's qacc is the recorded velocity difference / dt."""
     q, dq = rec.q[w, :-1], rec.dq[w, :-1]  # the state each step starts from
-    qacc = np.diff(rec.dq[w], axis=0) / DT
+    qacc = np.diff(rec.dq[w], axis=0) / CONTROL_PERIOD
     tau = rec.current[w, 1:] / ratio
     mass, bias = _dynamics(robot)(q, dq, params, jnp.asarray(gravity))
-    model = np.einsum("tij,tj->ti", np.asarray(mass), qacc) + DT * kv * qacc + np.asarray(bias)
+    inertial = np.einsum("tij,tj->ti", np.asarray(mass), qacc)
+    model = inertial + CONTROL_PERIOD * kv * qacc + np.asarray(bias)
     free = (np.abs(tau) < 0.999 * robot.effort_limits).all(axis=1)
     return (tau - model)[free]
 
