@@ -1,10 +1,28 @@
 """The simulator's hidden "true robot": what identification has to find.
 
 The truth differs from the nominal model by per-joint current/torque ratios and friction
-losses (default: the values identified on the paper's real Gen3 Lite), per-link centre-of-mass
-offsets of a few mm (link frame, drawn from a seed), current-sensor noise and optional viscous
-friction. It is stored in the ``RobotParams`` JSON format plus two extra keys,
-``current_noise`` (A, standard deviation) and ``viscous`` (N m s/rad per joint or null).
+losses, per-link centre-of-mass offsets of a few mm (link frame, drawn from a seed),
+current-sensor noise and optional viscous friction. It is stored in the ``RobotParams`` JSON
+format plus two extra keys, ``current_noise`` (A, standard deviation) and ``viscous`` (N m s/rad
+per joint or null).
+
+The truth is relative to the model's own figures (``TrueRobot.draw``):
+
+- A model may state its simulator's true ratios and friction losses, custom numerics
+  ``jaxcomp_sim_ratio`` (A/(N m)) and ``jaxcomp_sim_friction`` (A), and its current noise,
+  ``jaxcomp_sim_current_noise`` (A): the Gen3 Lite states the paper's identified values.
+- Otherwise ratios are the nominal ratio (``RobotParams.nominal``: the model's
+  ``jaxcomp_nominal_ratio``, else 1 A/(N m)) times U(``RATIO_SPREAD``), and friction losses
+  and current noise scale with each joint's *full current* (``full_current``): the nominal ratio
+  times the effort limit, at most the model's ``jaxcomp_current_limit``. A joint whose full
+  current is ``REFERENCE_CURRENT`` (11 A, the Gen3 Lite's current limit; also a joint with
+  neither an effort nor a current limit) gets friction losses U(``FRICTION_LOSS``) = U(0.2,
+  0.6) A, about 2-5 % of its full current, and the current noise ``DEFAULT_CURRENT_NOISE``
+  (0.05 A); other joints scale both by full current / 11 A, so that a small arm whose currents
+  are ~1 A gets friction losses of ~0.02-0.05 A, not ones comparable to its gravity current.
+  The rule trusts the model's effort limits: a model with placeholder limits (URDF
+  ``effort="1000"``) gets friction losses to match; state ``jaxcomp_sim_friction`` or real
+  limits.
 """
 
 from __future__ import annotations
@@ -16,15 +34,100 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from jaxcomp.errors import InputError
+from jaxcomp.errors import InputError, ModelError
 from jaxcomp.robot import Robot
 from jaxcomp.robot_params import RobotParams, _vector, arm_joint_indices, arm_joint_names
 
-#: Ratios (A/(N m)) and friction losses (A) identified on the paper's real arm, joints 0..5.
+#: Ratios (A/(N m)) and friction losses (A) identified on the paper's real arm, joints 0..5
+#: (the Gen3 Lite models state them as ``jaxcomp_sim_ratio`` and ``jaxcomp_sim_friction``).
 PAPER_RATIO = (1.0282, 0.3074, 1.0282, 1.9074, 2.0373, 1.9724)
 PAPER_FRICTION = (0.5318, 1.4776, 0.6695, 0.3013, 0.3732, 0.5923)
-DEFAULT_CURRENT_NOISE = 0.05  # A, standard deviation of the measured current
+DEFAULT_CURRENT_NOISE = 0.05  # A, standard deviation of the measured current at 11 A full current
 DEFAULT_COM_OFFSET = 0.004  # m, COM offsets are drawn uniformly in +-this per axis
+#: A drawn true ratio is the nominal ratio times U(lo, hi).
+RATIO_SPREAD = (0.9, 1.25)
+#: A: a drawn friction loss is U(lo, hi) times full current / ``REFERENCE_CURRENT``.
+FRICTION_LOSS = (0.2, 0.6)
+#: A: the full current of the ``FRICTION_LOSS`` and ``DEFAULT_CURRENT_NOISE`` figures.
+REFERENCE_CURRENT = 11.0
+
+
+def _numeric(
+    robot: Robot, name: str, n: int, *, one: bool = False, positive: bool = True
+) -> np.ndarray | None:
+    """The model's custom numeric ``name``: (n,) values (a single value broadcast when
+    ``one``), or None when absent; ``ModelError`` for another size or a value that is not
+    finite and > 0 (>= 0 unless ``positive``)."""
+    value = robot.custom_numeric(name)
+    if value is None:
+        return None
+    if one and value.size == 1:
+        value = np.full(n, float(value[0]))
+    if value.shape != (n,):
+        raise ModelError(
+            f"{robot.name}: custom numeric {name} has {value.size} values; it needs {n}"
+            + (" (or one)" if one else "")
+        )
+    bad = (value <= 0) if positive else (value < 0)
+    if not np.all(np.isfinite(value)) or np.any(bad):
+        sign = "> 0" if positive else ">= 0"
+        raise ModelError(f"{robot.name}: custom numeric {name} must be finite and {sign}: {value}")
+    return value
+
+
+def stated_truth(robot: Robot) -> tuple[np.ndarray, np.ndarray] | None:
+    """The simulator's true ratios (n,) A/(N m) and friction losses (n,) A that the model
+    states (custom numerics ``jaxcomp_sim_ratio`` and ``jaxcomp_sim_friction``), or None when
+    it states neither; ``ModelError`` when it states one alone."""
+    n = len(arm_joint_indices(robot))
+    ratio = _numeric(robot, "jaxcomp_sim_ratio", n)
+    friction = _numeric(robot, "jaxcomp_sim_friction", n, positive=False)
+    if (ratio is None) != (friction is None):
+        raise ModelError(
+            f"{robot.name}: the model states one of jaxcomp_sim_ratio and jaxcomp_sim_friction "
+            "without the other"
+        )
+    return None if ratio is None else (ratio, friction)
+
+
+def full_current(robot: Robot) -> np.ndarray:
+    """(n,) A per current-controlled joint: the nominal ratio (``RobotParams.nominal``) times
+    the effort limit, at most the model's ``jaxcomp_current_limit``; ``REFERENCE_CURRENT`` for a
+    joint with neither limit."""
+    n = len(arm_joint_indices(robot))
+    ratio = RobotParams.nominal(robot).ratio
+    current = ratio * robot.effort_limits[arm_joint_indices(robot)]
+    limit = _numeric(robot, "jaxcomp_current_limit", n, one=True)
+    if limit is not None:
+        current = np.minimum(current, limit)
+    return np.where(np.isfinite(current), current, REFERENCE_CURRENT)
+
+
+def friction_loss_range(robot: Robot) -> np.ndarray:
+    """(n, 2) A: the range of drawn friction losses, ``FRICTION_LOSS`` times full current /
+    ``REFERENCE_CURRENT``."""
+    scale = full_current(robot) / REFERENCE_CURRENT
+    return scale[:, None] * np.asarray(FRICTION_LOSS)
+
+
+def model_current_noise(robot: Robot) -> float:
+    """A, the standard deviation of the simulated current noise: the model's
+    ``jaxcomp_sim_current_noise``, else ``DEFAULT_CURRENT_NOISE`` times the mean full current
+    over ``REFERENCE_CURRENT``."""
+    stated = _numeric(robot, "jaxcomp_sim_current_noise", 1, positive=False)
+    if stated is not None:
+        return float(stated[0])
+    return DEFAULT_CURRENT_NOISE * float(np.mean(full_current(robot) / REFERENCE_CURRENT))
+
+
+def truth_centre(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
+    """Ratios (n,) A/(N m) and friction losses (n,) A at the centre of the model's truths: the
+    stated ones (``stated_truth``), else the middle of the drawn ranges."""
+    stated = stated_truth(robot)
+    if stated is not None:
+        return stated
+    ratio = RobotParams.nominal(robot).ratio * np.mean(RATIO_SPREAD)
+    return ratio, friction_loss_range(robot).mean(axis=1)
 
 
 def friction_loss_torque(friction: np.ndarray, ratio: np.ndarray, floor: float = 0.0) -> np.ndarray:
@@ -78,23 +181,27 @@ class TrueRobot:
         robot: Robot,
         seed: int = 0,
         com_offset: float = DEFAULT_COM_OFFSET,
-        current_noise: float = DEFAULT_CURRENT_NOISE,
+        current_noise: float | None = None,
         viscous: np.ndarray | None = None,
     ) -> TrueRobot:
-        """A truth for ``robot`` drawn from ``seed``.
+        """A truth for ``robot`` drawn from ``seed`` (see the module docstring).
 
-        Ratios and friction losses: the paper's values for a 6-joint arm, else the nominal
-        ratio times U(0.9, 1.25) and U(0.2, 0.6) A. COM offsets: U(-com_offset, com_offset) m
-        per axis on every link an arm joint moves.
+        Ratios and friction losses: the model's stated ones (``stated_truth``), else the
+        nominal ratio times U(``RATIO_SPREAD``) and U(``FRICTION_LOSS``) A times full current
+        / ``REFERENCE_CURRENT`` (``friction_loss_range``). COM offsets: U(-com_offset,
+        com_offset) m per axis on every link an arm joint moves. ``current_noise`` A (None:
+        ``model_current_noise``).
         """
         rng = np.random.default_rng(seed)
-        nominal = RobotParams.nominal(robot)
         arm = arm_joint_indices(robot)
-        if nominal.n == len(PAPER_RATIO):
-            ratio, friction = np.array(PAPER_RATIO), np.array(PAPER_FRICTION)
+        n = len(arm)
+        stated = stated_truth(robot)
+        if stated is not None:
+            ratio, friction = stated
         else:
-            ratio = nominal.ratio * rng.uniform(0.9, 1.25, nominal.n)
-            friction = rng.uniform(0.2, 0.6, nominal.n)
+            ratio = RobotParams.nominal(robot).ratio * rng.uniform(*RATIO_SPREAD, n)
+            scale = full_current(robot) / REFERENCE_CURRENT
+            friction = rng.uniform(*FRICTION_LOSS, n) * scale
         moved = robot.tree.moves[arm].any(axis=0)
         offsets = {
             name: rng.uniform(-com_offset, com_offset, 3)
@@ -109,7 +216,8 @@ class TrueRobot:
             method=f"truth seed={seed}",
             joints=arm_joint_names(robot),
         )
-        return cls(params, current_noise, viscous, seed)
+        noise = model_current_noise(robot) if current_noise is None else current_noise
+        return cls(params, noise, viscous, seed)
 
     # ----------------------------------------------------------------- files
     def save(self, path: str | Path) -> Path:
@@ -123,12 +231,14 @@ class TrueRobot:
 
     @classmethod
     def load(cls, path: str | Path, robot: Robot | None = None) -> TrueRobot:
-        """Read a truth (or any params file: noise then defaults to ``DEFAULT_CURRENT_NOISE``)."""
+        """Read a truth (or any params file: noise then defaults to ``robot``'s
+        ``model_current_noise``, without a robot to ``DEFAULT_CURRENT_NOISE``)."""
         params = RobotParams.load(path, robot)
         data = json.loads(Path(path).read_text())
+        noise = DEFAULT_CURRENT_NOISE if robot is None else model_current_noise(robot)
         return cls(
             params,
-            data.get("current_noise", DEFAULT_CURRENT_NOISE),
+            data.get("current_noise", noise),
             data.get("viscous"),
             int(data.get("seed", 0)),
         )

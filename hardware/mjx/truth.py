@@ -2,8 +2,10 @@
 
 ``BatchTruth`` is W ``TrueRobot``s side by side (ratio, friction loss, COM offsets, viscous
 friction, current noise) plus two things the CPU simulator lacks: a point payload at the
-end-effector site and the gravity vector of the mounting. ``true_inertial_params`` gives each
-world's inertial parameters (the nominal model with the truth's COM offsets and payload).
+end-effector site and the gravity vector of the mounting. ``BatchTruth.draw`` draws them as
+``TrueRobot.draw`` does, relative to the model's own figures (``jaxcomp.hardware.truth``).
+``true_inertial_params`` gives each world's inertial parameters (the nominal model with the
+truth's COM offsets and payload).
 Units: A/(N m), A, m, N m s/rad, kg, m/s^2.
 """
 
@@ -18,7 +20,7 @@ import numpy as np
 
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.mjx.model import end_effector_point
-from jaxcomp.hardware.truth import DEFAULT_CURRENT_NOISE, TrueRobot
+from jaxcomp.hardware.truth import DEFAULT_COM_OFFSET, TrueRobot, model_current_noise
 from jaxcomp.params import InertialParams, add_point_mass
 from jaxcomp.robot import Robot
 from jaxcomp.robot_params import RobotParams, arm_joint_indices, arm_joint_names
@@ -90,7 +92,7 @@ class BatchTruth:
         friction: ArrayLike,
         *,
         com_offset: ArrayLike | None = None,
-        current_noise: ArrayLike = DEFAULT_CURRENT_NOISE,
+        current_noise: ArrayLike | None = None,
         viscous: ArrayLike | None = None,
         payload: ArrayLike = 0.0,
         gravity: ArrayLike | None = None,
@@ -98,10 +100,13 @@ class BatchTruth:
     ) -> BatchTruth:
         """Broadcast per-joint (n,) or per-world (W, n) figures to a ``BatchTruth``.
 
-        ``com_offset`` (nb, 3) or (W, nb, 3) m (default 0); ``gravity`` (3,) or (W, 3) m/s^2
-        (default the model's); scalars broadcast to every world. ``worlds`` sets W when no
-        argument has a world axis.
+        ``com_offset`` (nb, 3) or (W, nb, 3) m (default 0); ``current_noise`` A (default the
+        model's, ``model_current_noise``); ``gravity`` (3,) or (W, 3) m/s^2 (default the
+        model's); scalars broadcast to every world. ``worlds`` sets W when no argument has a
+        world axis.
         """
+        if current_noise is None:
+            current_noise = model_current_noise(robot)
         n, nb = len(arm_joint_indices(robot)), len(robot.link_names)
         # W: the leading axis of any per-world argument (else ``worlds``, else 1)
         per_world = [(ratio, 2), (friction, 2), (viscous, 2), (com_offset, 3), (gravity, 2)]
@@ -125,6 +130,24 @@ class BatchTruth:
             payload=bcast(payload, (w,), "payload"),
             gravity=bcast(g, (w, 3), "gravity"),
         )
+
+    @classmethod
+    def draw(
+        cls,
+        robot: Robot,
+        seeds: Sequence[int],
+        *,
+        com_offset: float = DEFAULT_COM_OFFSET,
+        current_noise: float | None = None,
+        viscous: np.ndarray | None = None,
+        payload: ArrayLike = 0.0,
+        gravity: ArrayLike | None = None,
+    ) -> BatchTruth:
+        """One world per seed: world w is ``TrueRobot.draw(robot, seeds[w], com_offset,
+        current_noise, viscous)`` (the model's stated truth, else ratios and friction losses
+        drawn around its own figures), plus payload (W,) kg and gravity (3,) or (W, 3) m/s^2."""
+        truths = [TrueRobot.draw(robot, int(s), com_offset, current_noise, viscous) for s in seeds]
+        return cls.from_truths(robot, truths, payload=payload, gravity=gravity)
 
     @classmethod
     def from_truths(
