@@ -443,7 +443,8 @@ def plan_for_joints(
     Args:
         robot: the robot (name, path or ``Robot``).
         joints: swept joint index, or indices, among the current-controlled joints.
-        hold: (n,) rad or a named pose; default "home" (else zeros).
+        hold: (n,) rad or a named pose; default ``Robot.idle_pose`` (the "home" keyframe,
+            else the rest pose).
         lower, upper: rad; speed, move_speed: rad/s; settle, ramp: s.
 
     ``plan_for_joints("gen3_lite", 1, lower=-0.35, upper=0.35)``: joint 1 over +-20 deg at
