@@ -58,6 +58,13 @@ def _compile(name_or_path: str | Path) -> tuple[str, Path, mujoco.MjModel]:
     try:
         model = mujoco.MjModel.from_xml_path(str(path))
     except Exception as exc:  # MuJoCo raises ValueError with its parser's message
+        text = str(exc)
+        if "mass and inertia of moving bodies" in text:
+            where = text.splitlines()[-1].strip()
+            raise ModelError(
+                f"{path}: a joint moves no mass ({where}): give the bodies below every joint "
+                "an inertial (mass > 0), or remove the joint"
+            ) from None
         raise ModelError(f"MuJoCo cannot compile {path}: {exc}") from None
     return name, path.resolve(), model
 
