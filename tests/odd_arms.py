@@ -81,10 +81,12 @@ def serial_arm(
             '<body name="hand" pos="0.05 0 0"><inertial pos="0.02 0 0" mass="0.08" '
             'diaginertia="2e-5 2e-5 2e-5"/><geom type="box" size="0.02 0.03 0.01"/>'
             '<body name="finger_l" pos="0.04 0.01 0"><joint name="finger_l" type="slide" '
-            'axis="0 1 0" range="0 0.03" actuatorfrcrange="-5 5"/><inertial pos="0.01 0 0" mass="0.02" '
+            'axis="0 1 0" range="0 0.03" actuatorfrcrange="-5 5"/>'
+            '<inertial pos="0.01 0 0" mass="0.02" '
             'diaginertia="1e-6 1e-6 1e-6"/><geom type="box" size="0.01 0.003 0.008"/></body>'
             '<body name="finger_r" pos="0.04 -0.01 0"><joint name="finger_r" type="slide" '
-            'axis="0 -1 0" range="0 0.03" actuatorfrcrange="-5 5"/><inertial pos="0.01 0 0" mass="0.02" '
+            'axis="0 -1 0" range="0 0.03" actuatorfrcrange="-5 5"/>'
+            '<inertial pos="0.01 0 0" mass="0.02" '
             'diaginertia="1e-6 1e-6 1e-6"/><geom type="box" size="0.01 0.003 0.008"/></body>'
             + ('<site name="end_effector" pos="0.06 0 0"/>' if site else "")
             + "</body>"

@@ -3,14 +3,14 @@ effector and poses it picks, and the clear errors for models that cannot work.""
 
 import numpy as np
 import pytest
-from arms import offset_arm_7dof
 from odd_arms import serial_arm
+from synthetic import recording
 
 import jaxcomp
+from arms import offset_arm_7dof
 from jaxcomp.errors import InputError, ModelError
 from jaxcomp.recording import load_recording
 from jaxcomp.robot_params import RobotParams
-from synthetic import recording
 
 
 def _write(tmp_path, text: str, name: str = "arm.xml"):
@@ -67,7 +67,8 @@ def test_end_effector_site_order(tmp_path):
     np.testing.assert_allclose(tip, frames.pos[no_site.link_index("link3")])
     with_site = jaxcomp.load_robot(_write(tmp_path, serial_arm(5, n=4, site=True), "s.xml"))
     assert with_site.reduction.add_site_body is None
-    text = serial_arm(5, n=4).replace('<geom type="cylinder"', '<site name="tool"/><geom type="cylinder"')
+    cylinder = '<geom type="cylinder"'
+    text = serial_arm(5, n=4).replace(cylinder, '<site name="tool"/>' + cylinder)
     chosen = jaxcomp.load_robot(_write(tmp_path, text, "tool.xml"), site="tool")
     assert chosen.end_effector == "tool"
     with pytest.raises(ModelError, match="unknown site 'nope'"):
