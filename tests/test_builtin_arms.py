@@ -7,11 +7,15 @@ derived with plain MuJoCo and numpy, independently of the XML files.
 
 from __future__ import annotations
 
+import json
+
 import mujoco
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
 import jaxcomp
+from jaxcomp.cli import cli
 from jaxcomp.models import BUILTIN
 
 GEN3_JOINTS = [f"joint_{i}" for i in range(1, 8)]
@@ -370,3 +374,40 @@ def test_load_robot_gen3():
     g = np.asarray(robot.gravity(robot.pose("home")))
     np.testing.assert_allclose(g, gravity_torque(compiled("gen3"), robot.pose("home")), atol=1e-9)
     assert np.all(np.abs(g) <= robot.effort_limits)
+
+
+def test_models_command_lists_every_builtin():
+    result = CliRunner().invoke(cli, ["models"])
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    assert len(lines) == len(BUILTIN)
+    line = {name: [ln for ln in lines if ln.split()[0] == name] for name in BUILTIN}
+    assert all(len(found) == 1 for found in line.values()), lines
+    assert "7 controlled  0 held" in line["gen3"][0]
+    assert "6 controlled  0 held" in line["gen3_lite"][0]
+    for name in ("gen3", "gen3_lite", "wx250s"):
+        assert line[name][0].endswith(str(BUILTIN[name].resolve()))
+
+
+@needs_reduction
+def test_models_command_json_counts():
+    result = CliRunner().invoke(cli, ["models", "--json"])
+    assert result.exit_code == 0, result.output
+    entries = {e["name"]: e for e in json.loads(result.output)}
+    assert set(entries) == set(BUILTIN)
+    expected = {
+        "gen3": (GEN3_JOINTS, [], []),
+        "gen3_lite": ([f"joint_{i}" for i in range(6)], [], []),
+        "wx250s": (WX_CONTROLLED, ["wrist_rotate", *WX_FINGERS], []),
+        "mobile_gen3_lite": (
+            [f"joint_{i}" for i in range(6)],
+            [],
+            ["base_x", "base_y", "base_yaw"],
+        ),
+    }
+    for name, (controlled, held, base) in expected.items():
+        e = entries[name]
+        assert e["controlled"] == controlled, name
+        assert sorted(e["held"]) == sorted(held), name
+        assert e["base"] == base, name
+        assert e["source"] == str(BUILTIN[name].resolve())
