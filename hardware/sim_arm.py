@@ -54,11 +54,15 @@ def _fast_index(adr: np.ndarray) -> slice | np.ndarray:
 
 
 def simulation_spec(robot: Robot, joints: Sequence[int]) -> mujoco.MjSpec:
-    """The simulators' model of ``robot`` (its model file) before compiling: a 1 ms
-    implicitfast step and one actuator per joint index in ``joints``, named
+    """The simulators' model of ``robot`` (its reduced model, ``Robot.spec``) before compiling:
+    a 1 ms implicitfast step, no contacts, the model's own actuators removed and one actuator
+    per joint index in ``joints``, named
     ``jaxcomp_drive_<joint>`` (gain 1, affine bias: a servo or a torque source, set by the
     simulator)."""
-    spec = mujoco.MjSpec.from_file(str(robot.source))
+    spec = robot.spec()
+    for act in list(spec.actuators):  # the model's own actuators give way to the drives
+        spec.delete(act)
+    spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
     spec.option.timestep = CONTROL_PERIOD
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     names = robot.joint_names
@@ -82,7 +86,7 @@ class Simulator:
         truth: the hidden true robot; default ``TrueRobot.draw(robot, seed)`` (None for a
             model without arm joints).
         seed: seed of the drawn truth and of the current noise.
-        initial_pose: arm pose name or (n,) rad to start from (default "home" if present).
+        initial_pose: arm pose name or (n,) rad to start from (default ``Robot.idle_pose``).
         realtime: pace each step to the wall clock instead of lock step.
         viewer: open MuJoCo's passive viewer when a display exists (headless otherwise).
         servo_bandwidth: rad/s, natural frequency of the position servo at each joint's
@@ -204,7 +208,9 @@ class Simulator:
         """
         m, d = self.model, mujoco.MjData(self.model)
         rng = np.random.default_rng(0)
-        lo, hi = self._hard[:, 0], self._hard[:, 1]
+        finite = np.isfinite(self._hard).all(axis=1)  # continuous joints: any angle
+        lo = np.where(finite, self._hard[:, 0], -np.pi)
+        hi = np.where(finite, self._hard[:, 1], np.pi)
         i_min = np.full(self.n, np.inf)
         i_max = np.zeros(self.n)
         full = np.zeros((m.nv, m.nv))
@@ -226,7 +232,7 @@ class Simulator:
 
     def _set_pose(self, pose) -> None:
         if pose is None:
-            pose = "home" if "home" in self.robot.named_poses else np.zeros(self.n)
+            pose = self.robot.idle_pose[self._qadr]
         if isinstance(pose, str):
             pose = self.robot.pose(pose)[self._qadr]
         q = np.asarray(pose, dtype=float)

@@ -18,7 +18,7 @@ import numpy as np
 
 from jaxcomp.errors import InputError
 from jaxcomp.robot import Robot
-from jaxcomp.robot_params import RobotParams, _vector, arm_joint_indices
+from jaxcomp.robot_params import RobotParams, _vector, arm_joint_indices, arm_joint_names
 
 #: Ratios (A/(N m)) and friction losses (A) identified on the paper's real arm, joints 0..5.
 PAPER_RATIO = (1.0282, 0.3074, 1.0282, 1.9074, 2.0373, 1.9724)
@@ -101,7 +101,14 @@ class TrueRobot:
             for name, m in zip(robot.link_names, moved, strict=True)
             if m
         }
-        params = RobotParams(robot.name, ratio, friction, offsets, method=f"truth seed={seed}")
+        params = RobotParams(
+            robot.name,
+            ratio,
+            friction,
+            offsets,
+            method=f"truth seed={seed}",
+            joints=arm_joint_names(robot),
+        )
         return cls(params, current_noise, viscous, seed)
 
     # ----------------------------------------------------------------- files

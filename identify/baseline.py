@@ -35,7 +35,7 @@ from jaxcomp.identify.bins import BIN_WIDTH, SweepBins, bin_sweeps
 from jaxcomp.params import InertialParams
 from jaxcomp.recording import Recording
 from jaxcomp.robot import Robot, load_robot
-from jaxcomp.robot_params import RobotParams, arm_joint_indices
+from jaxcomp.robot_params import RobotParams, arm_joint_indices, arm_joint_names
 from jaxcomp.urdf import to_urdf
 
 #: A sweep excites its joint when the model's gravity torque amplitude reaches this, N m.
@@ -368,6 +368,7 @@ def fit_baseline(
         std=std,
         method="scipy",
         fit_seconds=time.perf_counter() - start,
+        joints=arm_joint_names(robot),
     )
 
 

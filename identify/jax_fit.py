@@ -76,7 +76,7 @@ from jaxcomp.identify.moments import (
 )
 from jaxcomp.recording import Recording
 from jaxcomp.robot import Robot, load_robot
-from jaxcomp.robot_params import RobotParams, arm_joint_indices
+from jaxcomp.robot_params import RobotParams, arm_joint_indices, arm_joint_names
 
 #: Prior standard deviation of each COM offset component, m.
 PRIOR_COM = 0.02
@@ -529,10 +529,12 @@ def phase_shift(
 def _check_same_model(recs: list[Recording]) -> FitModel:
     if not recs:
         raise InputError("no recording to fit")
-    names = {r.model for r in recs}
+    names = {(r.model, r.robot().controlled_joints) for r in recs}
     if len(names) > 1:
-        raise InputError(f"recordings of different models cannot be fitted jointly: {names}")
-    return fit_model(recs[0].model)
+        raise InputError(
+            f"recordings of different models (or joints) cannot be fitted jointly: {sorted(names)}"
+        )
+    return fit_model(recs[0].robot())
 
 
 def _params(
@@ -564,6 +566,7 @@ def _params(
         },
         method="jax",
         fit_seconds=seconds,
+        joints=arm_joint_names(model.robot),
         diagnostics={
             "iterations": int(sol.iterations),
             "current_noise": float(sol.sigma),

@@ -413,11 +413,11 @@ def load_plan(path: str | Path, robot: Robot | str | None = None) -> Calibration
 
 # --------------------------------------------------------------------- simple plans
 def arm_pose(robot: Robot, pose: str | Sequence[float] | None = None) -> np.ndarray:
-    """(n,) rad of the current-controlled joints: a named pose, an array, or (None) "home"
-    when the model has it, else zeros."""
+    """(n,) rad of the current-controlled joints: a named pose, an array, or (None)
+    ``Robot.idle_pose`` (the "home" keyframe, else the rest pose)."""
     arm = arm_joint_indices(robot)
     if pose is None:
-        pose = "home" if "home" in robot.named_poses else np.zeros(len(arm))
+        pose = robot.idle_pose[arm]
     if isinstance(pose, str):
         return robot.pose(pose)[arm]
     q = np.asarray(pose, float)

@@ -28,7 +28,7 @@ from jaxcomp.errors import InputError
 from jaxcomp.hardware.interface import Arm, ArmState
 from jaxcomp.identify.plan import CalibrationPlan, plan_from_dict
 from jaxcomp.recording import Recording, RecordingWriter, validate
-from jaxcomp.robot import load_robot
+from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import arm_joint_indices, write_json_atomic
 
 #: The plan being recorded, kept beside the writer's part files to check a resume.
@@ -37,10 +37,14 @@ PLAN_FILE = "plan.json"
 MOVE_DIRECTION = {"via": 0, "start": 0, "up": +1, "down": -1}
 
 
-def _check_metadata(model: str, n: int, gravity, payload_mass, payload_com) -> None:
+def _check_metadata(
+    model: str, joints: tuple[str, ...], gravity, payload_mass, payload_com
+) -> None:
     """Validate the metadata with the recording format's own rules before anything moves."""
+    n = len(joints)
     data: dict[str, Any] = {
         "model": np.array(model),
+        "joints": np.array(joints),
         "t": np.array([0.0, CONTROL_PERIOD]),
         "q": np.zeros((2, n)),
         "dq": np.zeros((2, n)),
@@ -63,7 +67,7 @@ def record(
     plan: CalibrationPlan,
     path: str | Path,
     *,
-    model: str,
+    model: str | Robot,
     gravity: Sequence[float] | None = None,
     payload_mass: float | None = None,
     payload_com: Sequence[float] | None = None,
@@ -77,8 +81,8 @@ def record(
             the last sweep's start.
         plan: the sweeps (validated against ``model`` first).
         path: the recording to write; part files go to ``<path>.parts/`` meanwhile.
-        model: the robot model name or path stored in the recording (its current-controlled
-            joints must match the arm's).
+        model: the robot model (name, path or ``Robot``) stored in the recording with its
+            current-controlled joints' names (which must match the arm's).
         gravity: (3,) m/s^2 in the base frame; payload_mass: kg; payload_com: (3,) m in the
             end-effector frame (recording metadata; None leaves the field out).
         progress: show a tqdm bar over the plan's samples.
@@ -90,7 +94,9 @@ def record(
     Raises InputError before moving for a plan, model or metadata that does not fit.
     """
     robot = load_robot(model)
-    n = len(arm_joint_indices(robot))
+    model = robot.reference if isinstance(model, Robot) else str(model)
+    joints = tuple(robot.joint_names[j] for j in arm_joint_indices(robot))
+    n = len(joints)
     if arm.n != n:
         raise InputError(
             f"the arm has {arm.n} joints but model {model!r} has {n} current-controlled joints"
@@ -105,7 +111,7 @@ def record(
             f"the plan moves at up to {max(speeds):.3g} rad/s, beyond the arm's speed limit "
             f"{vmax:.3g} rad/s"
         )
-    _check_metadata(str(model), n, gravity, payload_mass, payload_com)
+    _check_metadata(model, joints, gravity, payload_mass, payload_com)
 
     writer = RecordingWriter(
         path,
@@ -114,6 +120,7 @@ def record(
         gravity=gravity,
         payload_mass=payload_mass,
         payload_com=payload_com,
+        joints=joints,
         resume=resume,
     )
     plan_file = writer.parts / PLAN_FILE

@@ -6,6 +6,8 @@ One ``.npz``, SI units, n = the robot's current-controlled joints:
 - ``joint`` (N,) int, index of the swept joint (-1 outside sweeps);
 - ``direction`` (N,) int, +1 or -1 (0 outside sweeps);
 - ``model`` str, a built-in robot name or a path to an MJCF or URDF file;
+- optional ``joints`` (n,) str, the current-controlled joints' names (``load_robot(model,
+  joints=...)``; without it, the model's default joints);
 - optional ``gravity`` (3,) m/s^2 in the base frame (default (0, 0, -9.81));
 - optional ``payload_mass`` kg and ``payload_com`` (3,) m in the end-effector frame.
 
@@ -39,7 +41,7 @@ from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import arm_joint_indices, write_json_atomic
 
 _ARRAYS = ("t", "q", "dq", "current", "joint", "direction")
-_OPTIONAL = ("gravity", "payload_mass", "payload_com")
+_OPTIONAL = ("gravity", "payload_mass", "payload_com", "joints")
 #: |q| beyond this (rad) cannot be an angle in radians of a revolute arm joint.
 _MAX_ANGLE = 2 * np.pi + 0.5
 
@@ -59,6 +61,7 @@ class Recording:
     payload_mass: float = 0.0
     payload_com: np.ndarray = field(default_factory=lambda: np.zeros(3))
     extra: dict[str, np.ndarray] = field(default_factory=dict)
+    joints: tuple[str, ...] | None = None
 
     @property
     def n_samples(self) -> int:
@@ -69,8 +72,8 @@ class Recording:
         return self.q.shape[1]
 
     def robot(self) -> Robot:
-        """The robot model named by ``model``."""
-        return load_robot(self.model)
+        """The robot model named by ``model``, reduced to ``joints``."""
+        return load_robot(self.model, joints=self.joints)
 
     def to_arrays(self) -> dict[str, Any]:
         """The ``.npz`` contents (all fields, extras included)."""
@@ -81,6 +84,8 @@ class Recording:
             payload_mass=np.array(self.payload_mass),
             payload_com=self.payload_com,
         )
+        if self.joints is not None:
+            out["joints"] = np.array(self.joints)
         out.update(self.extra)
         return out
 
@@ -99,6 +104,7 @@ class Recording:
             payload_mass=self.payload_mass,
             payload_com=self.payload_com,
             extra=extra,
+            joints=self.joints,
         )
 
 
@@ -179,10 +185,12 @@ def _validate(data: Mapping[str, Any], require_sweep: bool) -> Recording:
     if model.dtype.kind != "U" or model.ndim != 0 or not str(model):
         raise InputError("recording field 'model' must be a non-empty string")
     model = str(model)
+    joints = _joint_names(data)
     try:
-        robot = load_robot(model)
+        robot = load_robot(model, joints=joints)
     except ModelError as exc:
-        raise InputError(f"recording field 'model': {exc}") from None
+        fields = "field 'model'" if joints is None else "field 'model' (with 'joints')"
+        raise InputError(f"recording {fields}: {exc}") from None
     n = len(arm_joint_indices(robot))
     t = _numeric(data, "t", (None,))
     N = t.shape[0]
@@ -264,7 +272,19 @@ def _validate(data: Mapping[str, Any], require_sweep: bool) -> Recording:
         payload_mass=payload_mass,
         payload_com=payload_com,
         extra=extra,
+        joints=joints,
     )
+
+
+def _joint_names(data: Mapping[str, Any]) -> tuple[str, ...] | None:
+    if "joints" not in data:
+        return None
+    names = np.asarray(data["joints"])
+    if names.dtype.kind == "S":
+        names = np.char.decode(names, "utf-8", "replace")
+    if names.dtype.kind != "U" or names.ndim != 1 or names.size == 0:
+        raise InputError("recording field 'joints' must be a non-empty list of joint names")
+    return tuple(str(x) for x in names)
 
 
 def load_recording(path: str | Path, require_sweep: bool = True) -> Recording:
@@ -291,6 +311,7 @@ class RecordingWriter:
     Args:
         path: the final ``.npz``.
         model: ``model`` field; n: current-controlled joints.
+        joints: ``joints`` field, their names (None: not written).
         gravity, payload_mass, payload_com: optional metadata (format units).
         extra: {name: per-sample shape} of additional arrays (e.g. ``{"ee": (3,)}``).
         flush_every: samples per part file (1000 = one second at 1 kHz).
@@ -309,6 +330,7 @@ class RecordingWriter:
         payload_mass: float | None = None,
         payload_com=None,
         extra: Mapping[str, tuple] | None = None,
+        joints: tuple[str, ...] | None = None,
         flush_every: int = 1000,
         resume: bool = False,
         require_sweep: bool = True,
@@ -322,6 +344,8 @@ class RecordingWriter:
             self.meta["payload_mass"] = float(payload_mass)
         if payload_com is not None:
             self.meta["payload_com"] = np.asarray(payload_com, float).tolist()
+        if joints is not None:
+            self.meta["joints"] = [str(x) for x in joints]
         self.meta["extra"] = {k: list(v) for k, v in (extra or {}).items()}
         self.meta["require_sweep"] = bool(require_sweep)
         self.flush_every = int(flush_every)

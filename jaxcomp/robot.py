@@ -7,7 +7,7 @@ of ``jaxcomp.dynamics`` that close over the model's constants. Units: q in rad (
 
 import hashlib
 import weakref
-from collections.abc import Callable, Hashable
+from collections.abc import Callable, Hashable, Sequence
 from functools import cached_property
 from pathlib import Path
 from typing import Any, TypeVar
@@ -17,13 +17,22 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from jaxcomp import dynamics
+from jaxcomp import dynamics, poses
 from jaxcomp.errors import InputError, ModelError
 from jaxcomp.kinematic_tree import KinematicTree, tree_from_mujoco
 from jaxcomp.models import BUILTIN
 from jaxcomp.params import InertialParams, add_point_mass
+from jaxcomp.reduction import Reduction, as_is, plan_reduction, reduce_spec
 
 T = TypeVar("T")
+
+#: Poses every robot has: keyframe name -> the ``Robot`` attribute used when the model lacks it.
+DEFAULT_POSES = {
+    "home": "start_pose",
+    "preferred": "start_pose",
+    "rest": "rest_pose",
+    "zero": "zero_pose",
+}
 
 
 def builtin_models() -> list[str]:
@@ -66,20 +75,46 @@ def model_digest(model: mujoco.MjModel) -> str:
 _IN_USE: "weakref.WeakValueDictionary[tuple[str, str, str], Robot]" = weakref.WeakValueDictionary()
 
 
-def load_robot(name_or_path: "str | Path | Robot") -> "Robot":
+def _reduced_spec(path: Path, full: mujoco.MjModel, reduction: Reduction) -> mujoco.MjSpec:
+    spec = mujoco.MjSpec.from_file(str(path))
+    if reduction.changes_model:
+        reduce_spec(spec, full, reduction)
+    return spec
+
+
+def load_robot(
+    name_or_path: "str | Path | Robot",
+    *,
+    joints: Sequence[str] | None = None,
+    site: str | None = None,
+) -> "Robot":
     """A ``Robot`` from a built-in name (``builtin_models()``) or an MJCF / URDF path.
+
+    The robot is the model reduced to its current-controlled joints (``jaxcomp.reduction``):
+    by default the hinge joints that no equality constraint couples, else the model's
+    ``jaxcomp_joints`` custom text, else ``joints`` (names); the other joints are welded at their
+    held position. ``site`` names the end-effector site when the model names none.
 
     While a robot loaded from the same, unchanged model is still in use somewhere, that robot is
     returned, so what it keeps (``Robot.cached``: compiled functions, plans, simulators) serves
     every caller.
     """
     if isinstance(name_or_path, Robot):
+        if joints is not None and tuple(joints) != name_or_path.controlled_joints:
+            return load_robot(name_or_path.source or name_or_path.name, joints=joints, site=site)
         return name_or_path
-    name, path, model = _compile(name_or_path)
+    name, path, full = _compile(name_or_path)
+    reduction = plan_reduction(full, joints, site)
+    model = full
+    if reduction.changes_model:
+        try:
+            model = _reduced_spec(path, full, reduction).compile()
+        except Exception as exc:  # MuJoCo's compiler message
+            raise ModelError(f"MuJoCo cannot compile {path} reduced to its joints: {exc}") from None
     key = (name, str(path), model_digest(model))
     robot = _IN_USE.get(key)
     if robot is None:
-        robot = Robot(model, name=name, source=path)
+        robot = Robot(model, name=name, source=path, reduction=reduction, full_model=full)
         robot.__dict__["digest"] = key[2]  # the cached property, already computed
         _IN_USE[key] = robot
     return robot
@@ -90,13 +125,24 @@ class Robot:
 
     Attributes:
         name: built-in name or file stem. source: the model file.
-        model: the compiled ``mujoco.MjModel``. tree: its ``KinematicTree``.
+        model: the compiled ``mujoco.MjModel``, reduced to the current-controlled joints (and a
+            mobile base's joints). tree: its ``KinematicTree``.
+        reduction: how the model file became ``model`` (``jaxcomp.reduction.Reduction``).
     """
 
-    def __init__(self, model: mujoco.MjModel, name: str = "robot", source: Path | None = None):
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        name: str = "robot",
+        source: Path | None = None,
+        reduction: Reduction | None = None,
+        full_model: mujoco.MjModel | None = None,
+    ):
         self.model = model
         self.name = name
         self.source = source
+        self.reduction = reduction if reduction is not None else as_is(model)
+        self._full_model = full_model if full_model is not None else model
         self.tree: KinematicTree = tree_from_mujoco(model)
         self._cache: dict[Hashable, Any] = {}
 
@@ -172,19 +218,68 @@ class Robot:
             poses[name] = self.model.key_qpos[k].copy()
         return poses
 
+    @cached_property
+    def rest_pose(self) -> np.ndarray:
+        """(nv,) rad or m: the model's ``qpos0`` moved inside the joint limits
+        (``poses.rest_pose``); calibration starts here when the model has no "home" keyframe."""
+        return poses.rest_pose(self)
+
+    @cached_property
+    def start_pose(self) -> np.ndarray:
+        """(nv,) rad or m: the controller's start pose when the model has no "home" keyframe,
+        chosen on the model away from singularities and limits (``poses.start_pose``)."""
+        return poses.start_pose(self)
+
+    @property
+    def idle_pose(self) -> np.ndarray:
+        """(nv,) rad or m where simulators and recordings start by default: the "home"
+        keyframe when the model has one, else ``rest_pose``."""
+        return self.pose("home") if "home" in self.named_poses else self.rest_pose.copy()
+
     def pose(self, name: str) -> np.ndarray:
-        """Joint positions (nv,) of a named pose (MJCF keyframe), rad or m."""
-        if name not in self.named_poses:
-            raise InputError(
-                f"unknown pose {name!r} for {self.name}; known: {', '.join(self.named_poses)}"
-            )
-        return self.named_poses[name].copy()
+        """Joint positions (nv,) of a named pose (MJCF keyframe), rad or m. Without such a
+        keyframe, "home" and "preferred" (the nullspace posture) are ``start_pose``, "rest" is
+        ``rest_pose`` and "zero" is all zeros moved inside the limits."""
+        if name in self.named_poses:
+            return self.named_poses[name].copy()
+        if name in DEFAULT_POSES:
+            value = getattr(self, DEFAULT_POSES[name])
+            return np.array(value() if callable(value) else value, float)
+        known = sorted(set(self.named_poses) | set(DEFAULT_POSES))
+        raise InputError(f"unknown pose {name!r} for {self.name}; known: {', '.join(known)}")
+
+    def zero_pose(self) -> np.ndarray:
+        """(nv,) zeros moved inside the joint limits."""
+        return poses.inside_limits(np.zeros(self.nv), self.joint_limits)
 
     @property
     def end_effector(self) -> str:
-        """Name of the end-effector site (custom text ``jaxcomp_end_effector``, else
-        ``end_effector``)."""
-        return self.custom_text("jaxcomp_end_effector") or "end_effector"
+        """Name of the end-effector site (``jaxcomp.reduction``: custom text
+        ``jaxcomp_end_effector``, else ``end_effector``, else ``--site``, else one added)."""
+        return self.reduction.site
+
+    @property
+    def reference(self) -> str:
+        """How files name this model (``model`` fields): the built-in name, else the file path."""
+        if self.name in BUILTIN and self.source == BUILTIN[self.name].resolve():
+            return self.name
+        return str(self.source) if self.source is not None else self.name
+
+    @property
+    def controlled_joints(self) -> tuple[str, ...]:
+        """Names of the current-controlled joints (model order)."""
+        return self.reduction.controlled
+
+    @property
+    def held_joints(self) -> dict[str, float]:
+        """Joints of the model file welded at their held position: {name: rad or m}."""
+        return dict(self.reduction.held)
+
+    def spec(self) -> mujoco.MjSpec:
+        """A fresh ``MjSpec`` of this robot's (reduced) model, for simulators to build on."""
+        if self.source is None:
+            raise ModelError(f"{self.name} was not loaded from a model file")
+        return _reduced_spec(self.source, self._full_model, self.reduction)
 
     @property
     def actuator_types(self) -> tuple[str, ...] | None:

@@ -7,11 +7,12 @@ and the simulator reads the same format as its hidden "true robot".
 Units: ``ratio`` A/(N m) per current-controlled joint, ``friction`` A (friction loss expressed
 as motor current), ``com_offset`` m added to a link's nominal centre of mass in the link's own
 frame, ``phase_shift`` rad. The current-controlled joints are the robot's joints minus the
-planar joints of a mobile base (``BASE_JOINTS``).
+planar joints of a mobile base (``BASE_JOINTS``); ``joints`` names them (files without it are
+taken to be for the model's default joints).
 
 JSON layout::
 
-    {"model": "gen3_lite", "ratio": [...], "friction": [...],
+    {"model": "gen3_lite", "joints": ["joint_0", ...], "ratio": [...], "friction": [...],
      "com_offset": {"ARM": [dx, dy, dz], ...}, "phase_shift": [...] | null,
      "std": {"ratio": [...], ...} | null, "method": "...", "fit_seconds": 12.3 | null,
      "diagnostics": {...} | null}
@@ -36,12 +37,13 @@ import numpy as np
 
 from jaxcomp.errors import InputError
 from jaxcomp.params import InertialParams
+from jaxcomp.reduction import BASE_JOINTS
 
 if TYPE_CHECKING:
     from jaxcomp.robot import Robot
 
 #: Joints of a mobile base (not current-controlled): excluded from the params' joints.
-BASE_JOINTS = ("base_x", "base_y", "base_yaw")
+BASE_JOINTS = BASE_JOINTS
 
 _REQUIRED = ("model", "ratio", "friction")
 
@@ -49,6 +51,11 @@ _REQUIRED = ("model", "ratio", "friction")
 def arm_joint_indices(robot: Robot) -> np.ndarray:
     """Indices (into ``robot.joint_names``) of the current-controlled joints, in order."""
     return np.array([i for i, n in enumerate(robot.joint_names) if n not in BASE_JOINTS], int)
+
+
+def arm_joint_names(robot: Robot) -> tuple[str, ...]:
+    """Names of the current-controlled joints, in order (the params' ``joints``)."""
+    return tuple(robot.joint_names[i] for i in arm_joint_indices(robot))
 
 
 def _vector(value: Any, name: str, n: int | None = None) -> np.ndarray:
@@ -79,6 +86,7 @@ class RobotParams:
         fit_seconds: wall time of the fit, s, or None.
         diagnostics: what the fit reports besides the estimates (iterations, identifiability,
             which ratios came from a prior or a type mean ...), or None.
+        joints: names of the joints the entries belong to, or None (the model's default).
     """
 
     model: str
@@ -90,6 +98,7 @@ class RobotParams:
     method: str = "nominal"
     fit_seconds: float | None = None
     diagnostics: dict | None = None
+    joints: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.model, str) or not self.model:
@@ -123,6 +132,14 @@ class RobotParams:
             raise InputError(f"diagnostics must be a mapping or null, got {self.diagnostics!r}")
         if not isinstance(self.method, str):
             raise InputError(f"method must be a string, got {self.method!r}")
+        if self.joints is not None:
+            if isinstance(self.joints, str) or not all(isinstance(j, str) for j in self.joints):
+                raise InputError(f"joints must be a list of joint names, got {self.joints!r}")
+            self.joints = tuple(self.joints)
+            if len(self.joints) != n:
+                raise InputError(
+                    f"joints names {len(self.joints)} joints but ratio has {n} entries"
+                )
 
     @property
     def n(self) -> int:
@@ -142,12 +159,24 @@ class RobotParams:
                 f"{robot.name}: custom numeric jaxcomp_nominal_ratio has {ratio.size} values "
                 f"for {n} current-controlled joints"
             )
-        return cls(model=robot.name, ratio=ratio, friction=np.zeros(n), method="nominal")
+        return cls(
+            model=robot.name,
+            ratio=ratio,
+            friction=np.zeros(n),
+            method="nominal",
+            joints=arm_joint_names(robot),
+        )
 
     # ----------------------------------------------------------------- checks
     def check(self, robot: Robot) -> RobotParams:
         """Raise InputError unless the params fit ``robot`` (joint count, link names)."""
-        n = len(arm_joint_indices(robot))
+        names = arm_joint_names(robot)
+        if self.joints is not None and self.joints != names:
+            raise InputError(
+                f"the params are for joints {', '.join(self.joints)} but {robot.name} "
+                f"current-controls {', '.join(names)}"
+            )
+        n = len(names)
         if self.n != n:
             raise InputError(
                 f"ratio has {self.n} entries but {robot.name} has {n} current-controlled joints"
@@ -172,8 +201,9 @@ class RobotParams:
     # ----------------------------------------------------------------- JSON
     def to_dict(self) -> dict:
         """Plain JSON-ready dict (lists of floats)."""
-        return {
+        out = {
             "model": self.model,
+            "joints": None if self.joints is None else list(self.joints),
             "ratio": self.ratio.tolist(),
             "friction": self.friction.tolist(),
             "com_offset": {k: v.tolist() for k, v in self.com_offset.items()},
@@ -183,6 +213,9 @@ class RobotParams:
             "fit_seconds": self.fit_seconds,
             "diagnostics": _jsonable(self.diagnostics),
         }
+        if self.joints is None:
+            del out["joints"]
+        return out
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2)
@@ -205,6 +238,7 @@ class RobotParams:
             method=data.get("method", "unknown"),
             fit_seconds=data.get("fit_seconds"),
             diagnostics=data.get("diagnostics"),
+            joints=data.get("joints"),
         )
         return params.check(robot) if robot is not None else params
 

@@ -277,10 +277,9 @@ class MjxSimulator:
         return jax.enable_x64(self.dtype == jnp.dtype(jnp.float64))
 
     def _initial_pose(self, pose: str | Sequence[float] | np.ndarray | None, w: int) -> np.ndarray:
-        """(w, n) rad: a pose name, (n,) or (w, n) rad; None: "home" if the model has it,
-        else zeros."""
+        """(w, n) rad: a pose name, (n,) or (w, n) rad; None: ``Robot.idle_pose``."""
         if pose is None:
-            pose = "home" if "home" in self.robot.named_poses else np.zeros(self.n)
+            pose = self.robot.idle_pose[arm_joint_indices(self.robot)]
         if isinstance(pose, str):
             pose = self.robot.pose(pose)[arm_joint_indices(self.robot)]
         q = np.asarray(pose, dtype=float)

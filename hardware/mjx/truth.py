@@ -21,7 +21,7 @@ from jaxcomp.hardware.mjx.model import end_effector_point
 from jaxcomp.hardware.truth import DEFAULT_CURRENT_NOISE, TrueRobot
 from jaxcomp.params import InertialParams, add_point_mass
 from jaxcomp.robot import Robot
-from jaxcomp.robot_params import RobotParams, arm_joint_indices
+from jaxcomp.robot_params import RobotParams, arm_joint_indices, arm_joint_names
 
 #: What ``BatchTruth.from_arrays`` broadcasts to a per-joint, per-link or per-world array: a
 #: number or anything ``np.asarray`` makes a float array of.
@@ -164,7 +164,14 @@ class BatchTruth:
             for i, name in enumerate(robot.link_names)
             if np.any(self.com_offset[w, i])
         }
-        params = RobotParams(robot.name, self.ratio[w], self.friction[w], offsets, method="truth")
+        params = RobotParams(
+            robot.name,
+            self.ratio[w],
+            self.friction[w],
+            offsets,
+            method="truth",
+            joints=arm_joint_names(robot),
+        )
         viscous = self.viscous[w] if np.any(self.viscous[w]) else None
         return TrueRobot(params, float(self.current_noise[w]), viscous)
 

@@ -38,9 +38,7 @@ def parse_push(text: str) -> tuple[float, float, tuple[float, float, float]]:
 
 def _model_name(robot) -> str:
     """The recording's ``model`` field: the built-in name, else the model file's path."""
-    from jaxcomp.robot import builtin_models
-
-    return robot.name if robot.name in builtin_models() else str(robot.source)
+    return robot.reference
 
 
 def _target_marker(sim):
