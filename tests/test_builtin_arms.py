@@ -13,6 +13,7 @@ import mujoco
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from test_models import body_tensor
 
 import jaxcomp
 from jaxcomp.cli import cli
@@ -107,15 +108,6 @@ def site_position(m: mujoco.MjModel, qpos, site: str = "end_effector") -> np.nda
     return d.site(site).xpos.copy()
 
 
-def body_tensor(m: mujoco.MjModel, name: str) -> np.ndarray:
-    """A body's inertia tensor about its COM, in the body frame."""
-    b = m.body(name)
-    r = np.zeros(9)
-    mujoco.mju_quat2Mat(r, b.iquat)
-    r = r.reshape(3, 3)
-    return r @ np.diag(b.inertia) @ r.T
-
-
 def tensor(ixx, iyy, izz, ixy, ixz, iyz) -> np.ndarray:
     return np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
 
@@ -128,16 +120,6 @@ def rot_z(a: float) -> np.ndarray:
 def rot_x(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-
-
-def reduced_core() -> bool:
-    """Whether ``load_robot`` reduces a model to its current-controlled joints."""
-    return hasattr(jaxcomp.Robot, "held_joints")
-
-
-needs_reduction = pytest.mark.skipif(
-    not reduced_core(), reason="load_robot does not yet weld held joints"
-)
 
 
 @pytest.fixture(scope="module", params=["gen3", "wx250s"])
@@ -343,7 +325,6 @@ def test_wx250s_kinematics():
 
 
 # ----------------------------------------------------------------------------- jaxcomp
-@needs_reduction
 def test_load_robot_reduces_wx250s():
     robot = jaxcomp.load_robot("wx250s")
     assert robot.joint_names == tuple(WX_CONTROLLED) and robot.nv == 5
@@ -367,7 +348,7 @@ def test_load_robot_reduces_wx250s():
 def test_load_robot_gen3():
     robot = jaxcomp.load_robot("gen3")
     assert robot.joint_names == tuple(GEN3_JOINTS)
-    assert getattr(robot, "held_joints", {}) == {}
+    assert robot.held_joints == {}
     limits = robot.joint_limits
     for j in GEN3_CONTINUOUS:
         assert np.all(np.isinf(limits[GEN3_JOINTS.index(j)]))
@@ -389,7 +370,6 @@ def test_models_command_lists_every_builtin():
         assert line[name][0].endswith(str(BUILTIN[name].resolve()))
 
 
-@needs_reduction
 def test_models_command_json_counts():
     result = CliRunner().invoke(cli, ["models", "--json"])
     assert result.exit_code == 0, result.output
