@@ -1,4 +1,4 @@
-"""`jaxcomp models` and `jaxcomp info`: what a robot model holds."""
+"""`jaxcomp info`: what a robot model holds."""
 
 import json
 
@@ -6,16 +6,6 @@ import click
 import numpy as np
 
 from jaxcomp.cli.group import cli
-
-
-@cli.command()
-def models() -> None:
-    """List the built-in robot models."""
-    from jaxcomp import builtin_models, load_robot
-
-    for name in builtin_models():
-        robot = load_robot(name)
-        click.echo(f"{name:<18} {robot.nv} joints: {', '.join(robot.joint_names)}")
 
 
 @cli.command()
