@@ -183,11 +183,21 @@ def model_errors(
 
 
 # ----------------------------------------------------------------------------- the study
+#: m, the radius of the paper's half circle (Exp. 2).
+PAPER_RADIUS = 0.315
+
+
 def trajectory_for(robot: Robot, passes: int) -> tuple[np.ndarray, Trajectory]:
     """(start (3,) m, the half circle from it): the end effector at the ``home`` pose (the
-    worlds settle within a fraction of a mm of it; the controller starts from where each is)."""
-    start = np.asarray(robot.site_position(robot.pose("home"), "end_effector"), float)
-    return start, parse_trajectory(f"half-circle:passes={passes}").build(start)
+    worlds settle within a fraction of a mm of it; the controller starts from where each is).
+    The paper's radius (``PAPER_RADIUS``), or the start's horizontal distance from the arm's
+    vertical axis where that is smaller (a smaller arm)."""
+    start = np.asarray(robot.site_position(robot.pose("home"), robot.end_effector), float)
+    radius = float(np.hypot(start[0], start[1]))
+    spec = f"half-circle:passes={passes}"
+    if radius < PAPER_RADIUS:
+        spec += f",r={radius:.4f}"
+    return start, parse_trajectory(spec).build(start)
 
 
 def _stats(values: np.ndarray, quantiles: tuple = (50, 95)) -> dict[str, float | None]:
