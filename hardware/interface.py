@@ -150,24 +150,27 @@ class ArmLimits:
 def current_limits(robot) -> np.ndarray:
     """(n,) A: the motor current magnitude limit of each current-controlled joint of ``robot``
     (its joints less a mobile base's): the model's ``jaxcomp_current_limit`` custom numeric (one
-    value for every joint, or one per joint), else the joint's effort limit (N m) times its
-    nominal current/torque ratio (``jaxcomp_nominal_ratio``, else 1 A/(N m)), else, for a joint
-    with no effort limit, ``DEFAULT_CURRENT_LIMIT`` (Gen3 Lite: 11 A declared)."""
+    value for every joint, or per joint: ``Robot.joint_numeric``), else, for a joint it gives
+    none, the joint's effort limit (N m) times its nominal current/torque ratio
+    (``RobotParams.nominal``: ``jaxcomp_nominal_ratio``, else 1 A/(N m)), else, for a joint with
+    no effort limit either, ``DEFAULT_CURRENT_LIMIT`` (the Gen3 Lite declares 11 A)."""
     from jaxcomp.robot_params import RobotParams, arm_joint_indices
 
     arm = arm_joint_indices(robot)
-    n = len(arm)
-    declared = robot.custom_numeric("jaxcomp_current_limit")
-    if declared is not None:
-        if declared.size not in (1, n) or not np.all(np.isfinite(declared) & (declared > 0)):
-            raise InputError(
-                f"{robot.name}: custom numeric jaxcomp_current_limit must be one positive number "
-                f"or {n} (one per current-controlled joint), got {declared.tolist()}"
-            )
-        return np.broadcast_to(declared, (n,)).astype(float)
     effort = robot.effort_limits[arm]
-    ratio = RobotParams.nominal(robot).ratio
-    return np.where(np.isfinite(effort), effort * ratio, DEFAULT_CURRENT_LIMIT)
+    derived = np.where(
+        np.isfinite(effort), effort * RobotParams.nominal(robot).ratio, DEFAULT_CURRENT_LIMIT
+    )
+    declared = robot.joint_numeric("jaxcomp_current_limit")
+    if declared is None:
+        return derived
+    given = ~np.isnan(declared)
+    if not np.all(np.isfinite(declared[given]) & (declared[given] > 0)):
+        raise InputError(
+            f"{robot.name}: custom numeric jaxcomp_current_limit must hold positive currents "
+            f"(A), got {declared.tolist()}"
+        )
+    return np.where(given, declared, derived)
 
 
 def _array(value, name: str, n: int, joints: Sequence[str]) -> np.ndarray:

@@ -7,6 +7,7 @@ import math
 import click
 
 from jaxcomp.cli.group import cli
+from jaxcomp.cli.model_options import joint_names, model_options
 from jaxcomp.errors import InputError, JaxcompError, ModelError
 
 #: The simulated robot when --model is not given: the Gen3 Lite on its Dingo-O base.
@@ -90,28 +91,11 @@ def _target_marker(sim):
     help="sim: the MuJoCo simulator; kortex: the real Gen3 Lite (kortex_api) and, when ROS 2 "
     "is available, the Dingo-O.",
 )
-@click.option(
-    "--model",
-    default=None,
-    metavar="NAME|PATH",
-    help="Simulated robot (sim only): a built-in model (mobile_gen3_lite, the Gen3 Lite on the "
-    "Dingo-O, the default; gen3_lite, the arm alone) or an MJCF / URDF path. An arm model runs "
-    "alone (no base); a mobile model (base joints base_x, base_y, base_yaw) runs with its base. "
-    "The arm starts at the model's 'home' keyframe, else at a start pose chosen on the model.",
-)
-@click.option(
-    "--joints",
-    default=None,
-    metavar="NAME,NAME,...",
-    help="The current-controlled joints (the others are held); default: the params file's "
-    "joints, else the model's (its hinge joints no equality couples, or its jaxcomp_joints).",
-)
-@click.option(
-    "--site",
-    default=None,
-    metavar="NAME",
-    help="The end-effector site, when the model names none (site 'end_effector' or custom text "
-    "jaxcomp_end_effector); default: a site added at the last body of the arm.",
+@model_options(
+    DEFAULT_MODEL,
+    "Simulated robot (sim only; an arm model runs alone, a mobile model with base joints "
+    "base_x, base_y, base_yaw with its base; the arm starts at the model's 'home' keyframe, "
+    "else at a start pose chosen on the model)",
 )
 @click.option(
     "--params",
@@ -119,7 +103,8 @@ def _target_marker(sim):
     type=click.Path(dir_okay=False),
     default=None,
     help="Identified params JSON (ratios A/(N m), friction A, COM offsets m); default: the "
-    "model's nominal figures.",
+    "model's nominal figures. The joints it lists are the current-controlled joints (--joints, "
+    "if given, must agree).",
 )
 @click.option("--trajectory", default="static", show_default=True, help=_TRAJ_HELP)
 @click.option(
@@ -200,7 +185,7 @@ def _target_marker(sim):
 def control(
     mode: str,
     backend: str,
-    model: str | None,
+    model: str,
     joints: str | None,
     site: str | None,
     params_file: str | None,
@@ -262,8 +247,8 @@ def control(
             raise InputError("--push acts on the simulator only")
         if realtime is False:
             raise InputError("the real robot runs in real time only (drop --lockstep)")
-        options = (("--model", model), ("--joints", joints), ("--site", site))
-        given = [name for name, value in options if value is not None]
+        options = (("--model", model != DEFAULT_MODEL), ("--joints", joints), ("--site", site))
+        given = [name for name, value in options if value]
         if given:
             raise InputError(
                 f"{', '.join(given)}: for the simulator only (--robot kortex drives the Gen3 Lite)"
@@ -280,7 +265,7 @@ def control(
             from jaxcomp.hardware import Simulator
 
             from_params = params if joints is None else None
-            robot = _load_model(model or DEFAULT_MODEL, chosen, site, from_params, params_file)
+            robot = _load_model(model, chosen, site, from_params, params_file)
             if not len(arm_joint_indices(robot)):
                 raise ModelError(f"{robot.name} has no arm joints: nothing to control")
             sim = Simulator(robot, seed=seed, viewer=viewer, initial_pose="home")
@@ -356,11 +341,9 @@ def control(
 def _chosen_joints(text: str | None, params, params_file: str | None) -> list[str] | None:
     """The current-controlled joints: --joints, else the params file's, else None (the
     model's own); InputError when both are given and differ."""
-    listed = None
-    if text is not None:
-        listed = [name.strip() for name in text.split(",") if name.strip()]
-        if not listed:
-            raise InputError(f"--joints {text!r}: expected joint names separated by commas")
+    listed = None if text is None else list(joint_names(text))
+    if listed is not None and not listed:
+        raise InputError(f"--joints {text!r}: expected joint names separated by commas")
     from_params = list(params.joints) if params is not None and params.joints else None
     if listed is not None and from_params is not None and listed != from_params:
         raise InputError(
