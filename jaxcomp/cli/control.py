@@ -207,8 +207,9 @@ def control(
 
     The controller works at 1 kHz in the arm's base frame; the base (when there is one)
     follows the end effector (paper Eq. 20). Any arm model works: its current-controlled
-    joints, end effector, start pose ('home' keyframe, else one chosen on the model), posture
-    ('preferred', same fallback), current limits and gains come from the model. Any fault,
+    joints, end effector, posture ('preferred' keyframe, else a start pose chosen on the model),
+    current limits and gains come from the model; the simulated arm starts at its 'home' pose
+    (same fallback), the real one where it stands. Any fault,
     stale or NaN feedback, out-of-range command or Ctrl-C ends the run with the arm in
     position mode and the base stopped. Prints the gains, how the run ended, the RMS tracking
     error (m) and the loop timing.
