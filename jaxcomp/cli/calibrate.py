@@ -99,11 +99,11 @@ def _table(columns: dict, links: list[str]) -> str:
 )
 @click.option(
     "--plan",
-    "plan_file",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Calibration plan JSON (default: the paper's sweeps, -100..100 deg at "
-    "40 deg/s, several held poses per joint).",
+    default="default",
+    show_default=True,
+    help="default: the paper's sweeps (up to -100..100 deg inside each joint's limits at "
+    "40 deg/s, several held poses per joint); short: one -40..40 deg sweep per joint (a quick "
+    "check); or a plan JSON file.",
 )
 @click.option(
     "--seed",
@@ -129,7 +129,7 @@ def _table(columns: dict, links: list[str]) -> str:
 )
 @click.option("--viewer", is_flag=True, help="Show the MuJoCo viewer (sim, needs a display).")
 def calibrate(
-    backend, model, joints, site, out_dir, plan_file, seed, truth_file, ip, resume, viewer
+    backend, model, joints, site, out_dir, plan, seed, truth_file, ip, resume, viewer
 ) -> None:
     """Run the calibration sweeps, record them at 1 kHz, and fit with both methods.
 
@@ -140,18 +140,18 @@ def calibrate(
     Then the joint JAX fit and the paper's scipy fit run on it and their parameters are
     printed side by side (with the truth, on the simulator).
     """
-    from jaxcomp.identify.plan import load_plan
-    from jaxcomp.identify.plan_design import default_plan
+    from jaxcomp.identify.named_plans import check_plan_name, named_plan
     from jaxcomp.identify.plots import plot_sweeps
     from jaxcomp.identify.recorder import record
     from jaxcomp.robot import load_robot
 
     out = Path(out_dir)
+    check_plan_name(plan)
     robot = load_robot(model, joints=joint_names(joints), site=site)
     if backend == "kortex" and robot.name != "gen3_lite":
         raise InputError(f"--robot kortex drives a Gen3 Lite; --model {model} is not one")
-    plan = load_plan(plan_file, robot) if plan_file else default_plan(robot)
-    click.echo(f"plan: {len(plan.sweeps)} sweeps, about {plan.duration():.0f} s of motion")
+    the_plan = named_plan(robot, plan)
+    click.echo(f"plan: {len(the_plan.sweeps)} sweeps, about {the_plan.duration():.0f} s of motion")
     truth = None
     if backend == "sim":
         from jaxcomp.hardware import Simulator, TrueRobot
@@ -166,7 +166,7 @@ def calibrate(
 
         arm = KortexArm(ip, robot=robot)
     with arm:
-        rec = record(arm, plan, out / "recording.npz", model=robot, resume=resume)
+        rec = record(arm, the_plan, out / "recording.npz", model=robot, resume=resume)
     click.echo(f"recorded {rec.n_samples} samples -> {out / 'recording.npz'}")
     fits = {}
     for method in _METHODS:

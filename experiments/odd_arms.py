@@ -1,4 +1,5 @@
-"""Arms jaxcomp was not built around, written by the tests (seeded, random sizes).
+"""Arms jaxcomp was not built around, for the tests and ``any_arm_pipeline.py`` (seeded, random
+sizes).
 
 ``serial_arm`` writes an MJCF serial arm: a base yaw joint, then pitch and roll joints in turn,
 random link lengths and masses, effort limits about twice the worst static gravity torque.
@@ -130,3 +131,40 @@ def serial_arm(
 def serial_arm_branch_joints(n: int) -> list[str]:
     """Joint names of the second arm ``serial_arm(branched=True)`` adds."""
     return ["b_j0"] + [f"b_j{k}" for k in range(1, max(n - 2, 2))]
+
+
+def serial_arm_urdf(seed: int = 0, n: int = 6, *, continuous: tuple[int, ...] = (0,)) -> str:
+    """URDF text of a random serial arm like ``serial_arm`` (no sites, as URDFs have none):
+    a base yaw joint, then pitch and roll joints in turn; ``continuous`` joints unlimited."""
+    rng = np.random.default_rng(seed)
+    axes = ["0 0 1"] + [_AXES[(k - 1) % len(_AXES)] for k in range(1, n)]
+    effort = 32.0
+    parts = [f'<robot name="odd_urdf{seed}">', '<link name="base"/>']
+    parent = "base"
+    for k in range(n):
+        length = rng.uniform(0.12, 0.3) if 0 < k < 3 else rng.uniform(0.05, 0.12)
+        mass = rng.uniform(0.3, 1.5) if k < 3 else rng.uniform(0.1, 0.5)
+        r = 0.04
+        along, across = mass * (3 * r**2 + length**2) / 12, mass * r**2 / 2
+        com = (0.0, 0.0, 0.05) if k == 0 else (0.5 * length, 0.0, 0.0)
+        xyz = (
+            "0 0 0.05"
+            if k == 0
+            else ("0 0 0.08" if k == 1 else f"{rng.uniform(0.15, 0.3):.4f} 0 0")
+        )
+        kind = "continuous" if k in continuous else "revolute"
+        limit = (
+            f'<limit effort="{effort}" velocity="3"/>'
+            if kind == "continuous"
+            else f'<limit lower="-2.4" upper="2.4" effort="{effort}" velocity="3"/>'
+        )
+        parts += [
+            f'<link name="link{k}"><inertial><origin xyz="{com[0]:.4f} {com[1]} {com[2]}"/>'
+            f'<mass value="{mass:.4f}"/><inertia ixx="{across:.6f}" ixy="0" ixz="0" '
+            f'iyy="{along:.6f}" iyz="0" izz="{along:.6f}"/></inertial></link>',
+            f'<joint name="j{k}" type="{kind}"><parent link="{parent}"/>'
+            f'<child link="link{k}"/><origin xyz="{xyz}" rpy="0 0 0"/>'
+            f'<axis xyz="{axes[k]}"/>{limit}</joint>',
+        ]
+        parent = f"link{k}"
+    return "\n".join(parts + ["</robot>"])
