@@ -14,17 +14,18 @@ PLANS = ("default", "short")
 
 
 def short_plan(robot: Robot) -> CalibrationPlan:
-    """A quick plan for CPU runs and CI (~26 s instead of ~230 s for the Gen3 Lite): one sweep
-    per joint over -40..+40 deg at 60 deg/s (the default plan's held-pose search), transfers
-    at 90 deg/s, 0.2 s settling. One speed per joint: the fit holds viscous friction at 0."""
+    """A quick plan for CPU runs and CI (~30 s instead of ~230 s for the Gen3 Lite): one sweep
+    per joint over -40..+40 deg (the default plan's held-pose search), sweeps and transfers at
+    55 deg/s (within the arms' 1 rad/s speed limit), 0.2 s settling. One speed per joint: the
+    fit holds viscous friction at 0."""
     return default_plan(
         robot,
         sweeps_per_joint=1,
         lower=math.radians(-40),
         upper=math.radians(40),
-        speed=math.radians(60),
+        speed=math.radians(55),
         slow_speed=None,
-        move_speed=math.radians(90),
+        move_speed=math.radians(55),
         settle=0.2,
         min_span=math.radians(60),
     )

@@ -37,7 +37,7 @@ from jaxcomp.cli.study import study
     default="default",
     show_default=True,
     help="default: the paper's plan (~230 s of sweeps); short: one +-40 deg sweep per joint "
-    "(~26 s, for CPU runs and CI); or a plan JSON file.",
+    "(~30 s, for CPU runs and CI); or a plan JSON file.",
 )
 @click.option(
     "--every",
