@@ -2,10 +2,10 @@
 
 ``make_impedance_controller`` (paper Eq. 3-5, 16; jitted JAX) and its pinocchio twin,
 ``make_velocity_controller`` (the non-compliant reference), ``BaseFollower`` (Eq. 20), and
-their gains (``ImpedanceGains``, ``VelocityGains``, ``BaseGains``). ``control.loop.run_control``
-runs a controller at 1 kHz on a ``hardware`` ``Arm`` (and ``Base``), with its ``watchdog``,
-``timing`` and end-effector ``trajectory``. Frames: the arm's base frame; SI units (m, rad, s,
-N, N m, A).
+their gains (``ImpedanceGains``, ``VelocityGains``, ``BaseGains``; ``impedance_gains``
+carries the impedance presets over to any arm). ``control.loop.run_control`` runs a controller
+at 1 kHz on a ``hardware`` ``Arm`` (and ``Base``), with its ``watchdog``, ``timing`` and
+end-effector ``trajectory``. Frames: the arm's base frame; SI units (m, rad, s, N, N m, A).
 """
 
 from jaxcomp.control.base_follower import BaseFollower, follow_twist
@@ -16,6 +16,7 @@ from jaxcomp.control.impedance import (
     ImpedanceControllerPinocchio,
     make_impedance_controller,
 )
+from jaxcomp.control.presets import impedance_gains
 from jaxcomp.control.velocity import (
     VelocityController,
     VelocityDiagnostics,
@@ -34,6 +35,7 @@ __all__ = [
     "VelocityDiagnostics",
     "VelocityGains",
     "follow_twist",
+    "impedance_gains",
     "make_impedance_controller",
     "make_velocity_controller",
 ]

@@ -2,9 +2,11 @@
 
 Frozen, validated dataclasses (``InputError`` on a bad value) with the paper's figures as
 defaults (de Wolde et al., Eq. 3-5, 16, 20 and Section V; the paper authors' code for the
-figures the text leaves out). Cartesian quantities are per axis x, y, z of the arm's base frame;
-per-joint quantities accept one number for every joint or one per joint, and are expanded by
-``joint_arrays(robot)`` against a robot model (``None`` = the model's own figure).
+figures the text leaves out): figures of the Gen3 Lite, which ``control.presets`` carries over
+to other arms (``impedance_gains(robot, preset)``). Cartesian quantities are per axis x, y, z
+of the arm's base frame; per-joint quantities accept one number for every joint or one per
+joint, and are expanded by ``joint_arrays(robot)`` against a robot model (``None`` = the
+model's own figure).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import numpy as np
 
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
+from jaxcomp.hardware.interface import current_limits
 
 if TYPE_CHECKING:
     from jaxcomp.robot import Robot
@@ -39,8 +42,6 @@ TRACKING_PRESET = {
 }
 #: Named presets of ``ImpedanceGains`` (``ImpedanceGains.preset(name)``).
 IMPEDANCE_PRESETS = ("paper", "tracking")
-#: Motor current limit (A) when the model has no ``jaxcomp_current_limit`` custom numeric.
-DEFAULT_CURRENT_LIMIT = 11.0
 
 
 def _number(value, name: str, *, positive: bool = False, nonneg: bool = False) -> float:
@@ -118,7 +119,8 @@ def _posture(posture, robot: Robot) -> np.ndarray:
     return _expand(posture, "posture", robot.nv)
 
 
-def _check_fixed_base(robot: Robot) -> None:
+def check_fixed_base(robot: Robot) -> None:
+    """InputError unless ``robot`` is an arm alone (the controllers' model: no base joints)."""
     from jaxcomp.robot_params import BASE_JOINTS
 
     base = [n for n in robot.joint_names if n in BASE_JOINTS]
@@ -141,7 +143,8 @@ class ImpedanceGains:
             task projected into the position task's nullspace (with the posture).
         orientation_damping: N m s/rad per axis.
         feedforward: add Lambda xdd_d + mu xd_d of Eq. (3) to the Cartesian force (paper: off).
-        posture: nullspace posture q_pref, rad, (n,); None = the model's "preferred" keyframe.
+        posture: nullspace posture q_pref, rad, (n,); None = ``robot.pose("preferred")`` (the
+            model's keyframe, else the start pose chosen on the model).
         nullspace_stiffness: K_n, N m/rad, one or per joint (paper's code: 0.125).
         nullspace_damping: D_n, N m s/rad, one or per joint (paper's code: 0.025).
         error_clip: m, the Cartesian error's norm is clipped to this (paper: 0.1).
@@ -155,11 +158,13 @@ class ImpedanceGains:
         friction_band: N m, width of the linear zone of that at-rest sign: sign(x) becomes
             clip(x / friction_band, -1, 1), continuous at x = 0, so a joint at rest whose torque
             hovers around zero is not kicked by +-l every cycle (0 = the paper's hard sign).
-        current_limit: A, magnitude per joint; None = the model's ``jaxcomp_current_limit``
-            custom numeric (Gen3 Lite: 11 A), else 11 A.
-        current_rate_limit: A/s, the most a joint's current may change per second (default
-            2000 A/s = 2 A per 1 ms cycle: a full-scale 11 A step takes 5.5 ms, and the
-            friction compensation's sign flip of Eq. (16), up to 2 l ~ 3 A, takes 2 cycles).
+        current_limit: A, magnitude per joint; None = the model's
+            (``jaxcomp.hardware.interface.current_limits``: its ``jaxcomp_current_limit``
+            custom numeric (Gen3 Lite: 11 A), else effort limit x nominal ratio, else 11 A).
+        current_rate_limit: A/s, one or per joint, the most a joint's current may change per
+            second (default 2000 A/s = 2 A per 1 ms cycle: a full-scale 11 A step takes 5.5 ms,
+            and the friction compensation's sign flip of Eq. (16), up to 2 l ~ 3 A, takes 2
+            cycles; ``control.presets`` scales it to other current limits).
         period: s, control period the rate limit refers to (``CONTROL_PERIOD``, 1 kHz).
         singularity_damping: 1/kg added to the diagonal of J M^-1 J^T before it is inverted,
             keeping the nullspace projector and Lambda finite at singular poses; small against
@@ -181,7 +186,7 @@ class ImpedanceGains:
     friction_direction: str = "torque"
     friction_band: float = 0.0
     current_limit: PerJoint | None = None
-    current_rate_limit: float = 2000.0
+    current_rate_limit: PerJoint = 2000.0
     period: float = CONTROL_PERIOD
     singularity_damping: float = 1e-6
 
@@ -217,7 +222,7 @@ class ImpedanceGains:
         if self.current_limit is not None:
             lim = _per_joint(self.current_limit, "current_limit (A)", positive=True)
             set_(self, "current_limit", lim)
-        rate = _number(self.current_rate_limit, "current_rate_limit (A/s)", positive=True)
+        rate = _per_joint(self.current_rate_limit, "current_rate_limit (A/s)", positive=True)
         set_(self, "current_rate_limit", rate)
         set_(self, "period", _number(self.period, "period (s)", positive=True))
         damp = _number(self.singularity_damping, "singularity_damping (1/kg)", nonneg=True)
@@ -225,7 +230,8 @@ class ImpedanceGains:
 
     @classmethod
     def preset(cls, name: str, **changes) -> ImpedanceGains:
-        """A named preset (``IMPEDANCE_PRESETS``: "paper", "tracking") with ``changes``."""
+        """A named preset (``IMPEDANCE_PRESETS``: "paper", "tracking") with ``changes``: the
+        Gen3 Lite's figures (``control.presets.impedance_gains`` gives them for any arm)."""
         if name not in IMPEDANCE_PRESETS:
             raise InputError(
                 f"unknown gains preset {name!r}; presets: {', '.join(IMPEDANCE_PRESETS)}"
@@ -258,21 +264,21 @@ class ImpedanceGains:
         return any(self.orientation_stiffness) or any(self.orientation_damping)
 
     @property
-    def max_current_step(self) -> float:
-        """A: the most a current may change in one control period."""
-        return self.current_rate_limit * self.period
+    def max_current_step(self) -> float | np.ndarray:
+        """A: the most a current may change in one control period (one, or (n,) per joint)."""
+        if np.ndim(self.current_rate_limit) == 0:
+            return self.current_rate_limit * self.period
+        return np.asarray(self.current_rate_limit) * self.period
 
     def joint_arrays(self, robot: Robot) -> JointGains:
         """Posture (rad), K_n (N m/rad), D_n (N m s/rad), current limit (A), each (n,)."""
-        _check_fixed_base(robot)
+        check_fixed_base(robot)
         n = robot.nv
         if self.current_limit is None:
-            limit = robot.custom_numeric("jaxcomp_current_limit")
-            if limit is None:
-                limit = np.full(n, DEFAULT_CURRENT_LIMIT)
-            limit = _expand(limit if limit.size != 1 else float(limit[0]), "current_limit", n)
+            limit = current_limits(robot)
         else:
             limit = _expand(self.current_limit, "current_limit", n)
+        _expand(self.current_rate_limit, "current_rate_limit", n)  # one, or one per joint
         return JointGains(
             posture=_posture(self.posture, robot),
             stiffness=_expand(self.nullspace_stiffness, "nullspace_stiffness", n),
@@ -298,7 +304,7 @@ class VelocityGains:
         max_speed: m/s, the Cartesian velocity command's norm is limited to this.
         error_clip: m, the position error's norm is clipped to this.
         pinv_damping: lambda, m, of the damped pseudo-inverse.
-        posture: rad, (n,); None = the model's "preferred" keyframe.
+        posture: rad, (n,); None = ``robot.pose("preferred")`` (keyframe, else start pose).
         nullspace_gain: k_n, 1/s, one or per joint.
         joint_velocity_limit: rad/s, one or per joint (1 rad/s = ``ArmLimits`` default).
     """
@@ -327,7 +333,7 @@ class VelocityGains:
 
     def joint_arrays(self, robot: Robot) -> JointGains:
         """Posture (rad), k_n (1/s), zeros, joint velocity limit (rad/s), each (n,)."""
-        _check_fixed_base(robot)
+        check_fixed_base(robot)
         n = robot.nv
         return JointGains(
             posture=_posture(self.posture, robot),

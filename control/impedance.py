@@ -50,6 +50,7 @@ import numpy as np
 
 from jaxcomp import dynamics
 from jaxcomp.control.gains import ImpedanceGains, JointGains
+from jaxcomp.control.presets import impedance_gains
 from jaxcomp.current import friction_current
 from jaxcomp.errors import InputError
 from jaxcomp.kinematic_tree import KinematicTree
@@ -390,9 +391,10 @@ class ImpedanceController:
         robot: Robot,
         params: RobotParams | None = None,
         gains: ImpedanceGains | None = None,
-        site: str = "end_effector",
+        site: str | None = None,
     ):
-        gains = ImpedanceGains() if gains is None else gains
+        gains = impedance_gains(robot, "paper") if gains is None else gains
+        site = robot.end_effector if site is None else site
         self.resolved = _resolve(robot, params, gains, site)
         self.robot = robot
         self.params = RobotParams.nominal(robot) if params is None else params
@@ -481,12 +483,14 @@ def make_impedance_controller(
     robot: Robot,
     params: RobotParams | None = None,
     gains: ImpedanceGains | None = None,
-    site: str = "end_effector",
+    site: str | None = None,
 ) -> ImpedanceController:
     """An ``ImpedanceController`` for ``robot`` (the arm's own model, base frame).
 
     ``params``: identified ratio, friction and COM offsets (None: the model's nominal ratios,
-    no friction, nominal COM). ``gains``: default ``ImpedanceGains()`` (the paper's).
+    no friction, nominal COM). ``gains``: default ``impedance_gains(robot, "paper")`` (the
+    paper's figures, ``ImpedanceGains()``, carried over to the arm: ``control.presets``).
+    ``site``: default the robot's end effector.
     """
     return ImpedanceController(robot, params, gains, site)
 
@@ -507,13 +511,14 @@ class ImpedanceControllerPinocchio:
         robot: Robot,
         params: RobotParams | None = None,
         gains: ImpedanceGains | None = None,
-        site: str = "end_effector",
+        site: str | None = None,
     ):
         import pinocchio as pin
 
         from jaxcomp.urdf import to_urdf
 
-        gains = ImpedanceGains() if gains is None else gains
+        gains = impedance_gains(robot, "paper") if gains is None else gains
+        site = robot.end_effector if site is None else site
         self.resolved = res = _resolve(robot, params, gains, site)
         self.robot, self.gains, self.site, self.n = robot, gains, site, robot.nv
         self._pin = pin

@@ -84,6 +84,9 @@ log = logging.getLogger(__name__)
 
 RECORDING = "recording.npz"
 TIMING = "timing.json"
+#: Smallest singular value of the end effector's position Jacobian, relative to its largest,
+#: that still counts as a direction the arm can move in (``check_site_mobility``).
+MIN_MOBILITY = 1e-3
 
 
 class Mode(enum.Enum):
@@ -208,7 +211,7 @@ class ArmMount:
 def arm_model(robot: Robot | str) -> Robot:
     """The arm-alone model the controllers work in: ``robot`` itself without base joints, else
     the model named by its ``jaxcomp_arm_model`` custom text (``mobile_gen3_lite`` ->
-    ``gen3_lite``)."""
+    ``gen3_lite``), reduced to the same current-controlled joints."""
     robot = load_robot(robot)
     if not any(b in robot.joint_names for b in BASE_JOINTS):
         return robot
@@ -218,8 +221,11 @@ def arm_model(robot: Robot | str) -> Robot:
             f"{robot.name} has base joints; name its arm-alone model in a custom text "
             "'jaxcomp_arm_model'"
         )
-    arm = load_robot(name)
     want = tuple(robot.joint_names[j] for j in arm_joint_indices(robot))
+    try:
+        arm = load_robot(name, joints=want)
+    except ModelError as exc:
+        raise ModelError(f"{robot.name}'s arm model {name}: {exc}") from None
     if arm.joint_names != want:
         raise ModelError(f"{arm.name}'s joints {arm.joint_names} are not {robot.name}'s {want}")
     return arm
@@ -238,6 +244,21 @@ def arm_params(params: RobotParams | None, arm: Robot) -> RobotParams | None:
     if params is None or params.model == arm.name:
         return params
     return dc_replace(params, model=arm.name).check(arm)
+
+
+def check_site_mobility(robot: Robot, q: np.ndarray, site: str) -> None:
+    """InputError unless the joints move ``site`` in all three directions at ``q`` (rad): the
+    position Jacobian's smallest singular value must be at least ``MIN_MOBILITY`` of its
+    largest (the Cartesian controllers need a position task of rank 3)."""
+    sv = np.linalg.svd(np.asarray(robot.jacobian(q, site))[:3], compute_uv=False)
+    rank = int(np.sum(sv > MIN_MOBILITY * sv[0])) if sv[0] > 0 else 0
+    if rank < 3:
+        raise InputError(
+            f"the joints of {robot.name} ({', '.join(robot.joint_names)}) move its end effector "
+            f"{site!r} in only {rank} of 3 directions at the start pose (position Jacobian "
+            f"singular values {', '.join(f'{v:.3g}' for v in sv)} m/rad): Cartesian control "
+            "needs 3; choose another end-effector site (--site) or other joints (--joints)"
+        )
 
 
 # ----------------------------------------------------------------------------- control laws
@@ -541,8 +562,9 @@ def run_control(
             is a base, identity otherwise.
         base_gains: base follower gains (default the paper's ``BaseGains()``).
         model: the recording's ``model`` field and the model the mount is read from; default
-            the controller's robot; with a base, the mobile model it names
-            (``mobile_model_name``: "mobile_gen3_lite" for "gen3_lite").
+            the controller's robot (``Robot.reference``: built-in name or file path); with a
+            base, the mobile model it names (``mobile_model_name``: "mobile_gen3_lite" for
+            "gen3_lite"). The recording's ``joints`` are the arm's.
         watchdog: default: current limit = the arm's limits, saturation at the controller's
             limit for ``max_saturated_cycles`` cycles, no stale tolerance, loop-stall limit
             20 ms in real time.
@@ -637,7 +659,7 @@ def _set_up(
     law = _Law(controller, arm)
     robot = controller.robot
     if model is None:
-        model = mobile_model_name(robot) if base is not None else robot.name
+        model = mobile_model_name(robot) if base is not None else robot.reference
     if mount is None:
         mount = ArmMount.from_model(model) if base is not None else ArmMount()
     out = Path(out_dir)
@@ -668,6 +690,7 @@ def _set_up(
     pose0 = np.array(odom0.pose, float) if odom0 is not None else np.zeros(3)
     if odom0 is not None:
         wd.check_odometry(odom0.pose, odom0.twist, state.t)
+    check_site_mobility(robot, state.q, controller.site)
     ee0, rot0 = (np.asarray(x, dtype=float) for x in robot.site_pose(state.q, controller.site))
     guidance = mode is Mode.GUIDANCE
     if guidance:  # trajectory frame = base frame
@@ -715,6 +738,7 @@ def _set_up(
         model,
         arm.n,
         extra={**_EXTRA, "command": (arm.n,)},
+        joints=tuple(arm.joint_names),
         flush_every=1000,
         require_sweep=False,
     )

@@ -51,9 +51,9 @@ class VelocityDiagnostics(NamedTuple):
         return self.data[..., 6]
 
 
-def velocity_step_fn(robot: Robot, gains: VelocityGains, site: str = "end_effector"):
+def velocity_step_fn(robot: Robot, gains: VelocityGains, site: str | None = None):
     """The pure (unjitted) step function; see ``VelocityController.step``."""
-    tree, s = robot.tree, robot.site_index(site)
+    tree, s = robot.tree, robot.site_index(robot.end_effector if site is None else site)
     posture, k_n, _, limit = gains.joint_arrays(robot)
     k_p, lam2 = np.asarray(gains.gain), gains.pinv_damping**2 * np.eye(3)
     clip, max_speed = gains.error_clip, gains.max_speed
@@ -98,9 +98,8 @@ class VelocityController:
             impedance controller's (``packed_size``), y = dq (n) | diagnostics data (7).
     """
 
-    def __init__(
-        self, robot: Robot, gains: VelocityGains | None = None, site: str = "end_effector"
-    ):
+    def __init__(self, robot: Robot, gains: VelocityGains | None = None, site: str | None = None):
+        site = robot.end_effector if site is None else site
         self.robot, self.site, self.n = robot, site, robot.nv
         self.gains = VelocityGains() if gains is None else gains
         self.step_fn = velocity_step_fn(robot, self.gains, site)
@@ -126,7 +125,7 @@ class VelocityController:
 
 
 def make_velocity_controller(
-    robot: Robot, gains: VelocityGains | None = None, site: str = "end_effector"
+    robot: Robot, gains: VelocityGains | None = None, site: str | None = None
 ) -> VelocityController:
     """A ``VelocityController`` for ``robot`` (the arm's own model, base frame)."""
     return VelocityController(robot, gains, site)

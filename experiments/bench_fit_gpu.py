@@ -43,7 +43,8 @@ from jaxcomp.hardware.mjx import batch_mesh
 from jaxcomp.identify.evaluate import gravity_torque_at
 from jaxcomp.identify.jax_fit import fit_batch, fit_model
 from jaxcomp.identify.moments import stack_worlds, sweep_moments_batch
-from jaxcomp.studies.plan_signal import load_study_plan, plan_signal, start_pose
+from jaxcomp.identify.named_plans import named_plan
+from jaxcomp.studies.plan_signal import plan_signal, start_pose
 from jaxcomp.studies.truth_draw import TruthSpread, draw_truth
 
 
@@ -112,7 +113,7 @@ def main() -> None:
 
     robot = load_robot("gen3_lite")
     model = fit_model(robot)
-    plan = load_study_plan(robot, args.plan)
+    plan = named_plan(robot, args.plan)
     signal = plan_signal(plan, start_pose(robot))
     truth = draw_truth(robot, args.count, args.seed, TruthSpread())
     mesh = batch_mesh(args.devices)

@@ -24,6 +24,10 @@ import numpy as np
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError, JaxcompError
 from jaxcomp.hardware.mecanum import TwistLimits
+from jaxcomp.reduction import BASE_JOINTS
+
+#: A: motor current limit of a joint whose model declares neither a current nor an effort limit.
+DEFAULT_CURRENT_LIMIT = 11.0
 
 
 class ControlMode(enum.Enum):
@@ -124,21 +128,49 @@ class ArmLimits:
         velocity: float = 1.0,
         switch_speed: float = math.radians(10.0),
     ) -> ArmLimits:
-        """Limits from a ``jaxcomp.Robot``: joint ranges, ``jaxcomp_current_limit`` (A, else
-        11 A), effort limits; ``joints`` selects the arm's joints (default: all)."""
+        """Limits from a ``jaxcomp.Robot``: joint ranges, current limits (``current_limits``),
+        effort limits; ``joints`` selects the arm's joints (default: all)."""
         idx = np.arange(robot.nv) if joints is None else np.asarray(joints, int)
         hard = robot.joint_limits[idx]
         n = len(idx)
-        cur = robot.custom_numeric("jaxcomp_current_limit")
-        cur = np.full(n, 11.0) if cur is None else np.broadcast_to(cur, (n,)).astype(float)
+        arm = [i for i, name in enumerate(robot.joint_names) if name not in BASE_JOINTS]
+        if not set(idx.tolist()) <= set(arm):
+            raise InputError(f"joints {idx.tolist()} of {robot.name} include base joints")
+        cur = current_limits(robot)[[arm.index(i) for i in idx]]
         return cls(
             position=hard + np.array([margin, -margin]),
             hard_position=hard,
             velocity=np.full(n, float(velocity)),
-            current=cur.copy(),
+            current=cur,
             effort=robot.effort_limits[idx].copy(),
             switch_speed=switch_speed,
         )
+
+
+def current_limits(robot) -> np.ndarray:
+    """(n,) A: the motor current magnitude limit of each current-controlled joint of ``robot``
+    (its joints less a mobile base's): the model's ``jaxcomp_current_limit`` custom numeric (one
+    value for every joint, or per joint: ``Robot.joint_numeric``), else, for a joint it gives
+    none, the joint's effort limit (N m) times its nominal current/torque ratio
+    (``RobotParams.nominal``: ``jaxcomp_nominal_ratio``, else 1 A/(N m)), else, for a joint with
+    no effort limit either, ``DEFAULT_CURRENT_LIMIT`` (the Gen3 Lite declares 11 A)."""
+    from jaxcomp.robot_params import RobotParams, arm_joint_indices
+
+    arm = arm_joint_indices(robot)
+    effort = robot.effort_limits[arm]
+    derived = np.where(
+        np.isfinite(effort), effort * RobotParams.nominal(robot).ratio, DEFAULT_CURRENT_LIMIT
+    )
+    declared = robot.joint_numeric("jaxcomp_current_limit")
+    if declared is None:
+        return derived
+    given = ~np.isnan(declared)
+    if not np.all(np.isfinite(declared[given]) & (declared[given] > 0)):
+        raise InputError(
+            f"{robot.name}: custom numeric jaxcomp_current_limit must hold positive currents "
+            f"(A), got {declared.tolist()}"
+        )
+    return np.where(given, declared, derived)
 
 
 def _array(value, name: str, n: int, joints: Sequence[str]) -> np.ndarray:

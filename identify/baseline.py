@@ -193,16 +193,10 @@ class _PinocchioGravity:
 
 # ----------------------------------------------------------------------------- the fit
 def _actuator_types(robot: Robot, n: int) -> list[str]:
-    text = robot.custom_text("jaxcomp_actuator_types")
-    if text is None:
+    types = robot.actuator_types
+    if types is None:
         return [f"joint{j}" for j in range(n)]  # no shared types: nothing to borrow from
-    types = text.split()
-    if len(types) != n:
-        raise InputError(
-            f"{robot.name}: custom text jaxcomp_actuator_types has {len(types)} entries for "
-            f"{n} current-controlled joints"
-        )
-    return types
+    return list(types)
 
 
 def _pairs(bins: SweepBins, rows: np.ndarray, j: int):

@@ -52,12 +52,15 @@ class Reduction:
         add_site_body: body name the site is added to (at its origin), or None when the model
             has the site.
         controlled: names of the current-controlled joints, model order.
+        declared: the joints the model itself current-controls (its ``jaxcomp_joints``, else
+            the default rule): what per-joint custom data of the model is listed for.
     """
 
     held: dict[str, float] = field(default_factory=dict)
     site: str = ADDED_SITE
     add_site_body: str | None = None
     controlled: tuple[str, ...] = ()
+    declared: tuple[str, ...] = ()
 
     @property
     def changes_model(self) -> bool:
@@ -133,21 +136,22 @@ def plan_reduction(
             f"joint {free[0]} (free) is a free joint: jaxcomp needs a fixed-base arm (remove the "
             "freejoint so the base is welded to the world)"
         )
-    if joints is not None:
-        _check_joint_names(joints, names, "--joints")
-        chosen, source = set(joints), "--joints"
-    elif (text := _custom_text(model, "jaxcomp_joints")) is not None:
+    if (text := _custom_text(model, "jaxcomp_joints")) is not None:
         listed = text.split()
         _check_joint_names(listed, names, "the model's jaxcomp_joints")
-        chosen, source = set(listed), "the model's jaxcomp_joints"
+        declared, source = set(listed), "the model's jaxcomp_joints"
     else:
         coupled = coupled_joints(model)
-        chosen = {
+        declared = {
             n
             for j, (n, k) in enumerate(zip(names, kinds, strict=True))
             if k == "hinge" and j not in coupled and n not in BASE_JOINTS
         }
         source = None
+    chosen = declared
+    if joints is not None:
+        _check_joint_names(joints, names, "--joints")
+        chosen, source = set(joints), "--joints"
     bad = sorted(
         n for n in chosen if kinds[names.index(n)] not in ("hinge", "slide") or n in BASE_JOINTS
     )
@@ -172,7 +176,13 @@ def plan_reduction(
         held[n] = held_position(model, j) if kinds[j] in ("hinge", "slide") else 0.0
     _check_moved_mass(model, [names.index(n) for n in controlled], names)
     site_name, add_body = _end_effector(model, [names.index(n) for n in controlled], site)
-    return Reduction(held=held, site=site_name, add_site_body=add_body, controlled=controlled)
+    return Reduction(
+        held=held,
+        site=site_name,
+        add_site_body=add_body,
+        controlled=controlled,
+        declared=tuple(n for n in names if n in declared),
+    )
 
 
 def as_is(model: mujoco.MjModel) -> Reduction:
@@ -180,7 +190,8 @@ def as_is(model: mujoco.MjModel) -> Reduction:
     current-controlled; the site is ``jaxcomp_end_effector`` else ``end_effector``."""
     names = [_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(model.njnt)]
     site = _custom_text(model, "jaxcomp_end_effector") or ADDED_SITE
-    return Reduction(site=site, controlled=tuple(n for n in names if n not in BASE_JOINTS))
+    arm = tuple(n for n in names if n not in BASE_JOINTS)
+    return Reduction(site=site, controlled=arm, declared=arm)
 
 
 def _subtree_mass(model: mujoco.MjModel) -> np.ndarray:

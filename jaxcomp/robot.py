@@ -58,6 +58,13 @@ def _compile(name_or_path: str | Path) -> tuple[str, Path, mujoco.MjModel]:
     try:
         model = mujoco.MjModel.from_xml_path(str(path))
     except Exception as exc:  # MuJoCo raises ValueError with its parser's message
+        text = str(exc)
+        if "mass and inertia of moving bodies" in text:
+            where = text.splitlines()[-1].strip()
+            raise ModelError(
+                f"{path}: a joint moves no mass ({where}): give the bodies below every joint "
+                "an inertial (mass > 0), or remove the joint"
+            ) from None
         raise ModelError(f"MuJoCo cannot compile {path}: {exc}") from None
     return name, path.resolve(), model
 
@@ -281,12 +288,47 @@ class Robot:
             raise ModelError(f"{self.name} was not loaded from a model file")
         return _reduced_spec(self.source, self._full_model, self.reduction)
 
+    def _per_joint(self, name: str, values: list) -> list | None:
+        """``values`` of a per-joint custom field mapped onto the current-controlled joints:
+        listed for the joints the model declares (``Reduction.declared``) or for every joint of
+        the model file; None where a joint has no value."""
+        for listed in (self.reduction.declared, self._file_joints):
+            if len(values) == len(listed):
+                given = dict(zip(listed, values, strict=True))
+                return [given.get(j) for j in self.controlled_joints]
+        raise ModelError(
+            f"{self.name}: custom field {name} has {len(values)} entries; it needs one per "
+            f"current-controlled joint ({', '.join(self.reduction.declared)})"
+        )
+
+    @cached_property
+    def _file_joints(self) -> tuple[str, ...]:
+        m = self._full_model
+        return tuple(
+            mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}" for j in range(m.njnt)
+        )
+
+    def joint_numeric(self, name: str) -> np.ndarray | None:
+        """A per-joint ``<custom><numeric>`` for the current-controlled joints (n,) (NaN for a
+        joint it gives no value), or None when absent. A single value applies to every joint."""
+        data = self.custom_numeric(name)
+        if data is None:
+            return None
+        if data.size == 1:
+            return np.full(len(self.controlled_joints), float(data[0]))
+        values = self._per_joint(name, data.tolist())
+        return np.array([np.nan if v is None else v for v in values], float)
+
     @property
     def actuator_types(self) -> tuple[str, ...] | None:
         """Actuator type label of each current-controlled joint (custom text
-        ``jaxcomp_actuator_types``, whitespace-separated), or None when the model has none."""
+        ``jaxcomp_actuator_types``, whitespace-separated; a joint it lists no type for is its
+        own type), or None when the model has none."""
         text = self.custom_text("jaxcomp_actuator_types")
-        return tuple(text.split()) if text else None
+        if not text:
+            return None
+        types = self._per_joint("jaxcomp_actuator_types", text.split())
+        return tuple(t or f"joint:{j}" for t, j in zip(types, self.controlled_joints, strict=True))
 
     def with_payload(self, params: InertialParams, mass, com) -> InertialParams:
         """``params`` plus a point payload of ``mass`` kg at ``com`` (3,) m in the

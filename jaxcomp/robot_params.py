@@ -46,6 +46,8 @@ if TYPE_CHECKING:
 BASE_JOINTS = BASE_JOINTS
 
 _REQUIRED = ("model", "ratio", "friction")
+#: A/(N m), the nominal current/torque ratio of a joint whose model states none.
+DEFAULT_RATIO = 1.0
 
 
 def arm_joint_indices(robot: Robot) -> np.ndarray:
@@ -149,16 +151,12 @@ class RobotParams:
     # ----------------------------------------------------------------- constructors
     @classmethod
     def nominal(cls, robot: Robot) -> RobotParams:
-        """The model's own figures: ratio from ``jaxcomp_nominal_ratio`` (else 1), no friction."""
+        """The model's own figures: ratio from ``jaxcomp_nominal_ratio`` (else
+        ``DEFAULT_RATIO``, also for a joint it gives none), no friction."""
         n = len(arm_joint_indices(robot))
-        ratio = robot.custom_numeric("jaxcomp_nominal_ratio")
-        if ratio is None:
-            ratio = np.ones(n)
-        elif ratio.shape != (n,):
-            raise InputError(
-                f"{robot.name}: custom numeric jaxcomp_nominal_ratio has {ratio.size} values "
-                f"for {n} current-controlled joints"
-            )
+        ratio = robot.joint_numeric("jaxcomp_nominal_ratio")
+        ratio = np.full(n, DEFAULT_RATIO) if ratio is None else ratio
+        ratio = np.where(np.isnan(ratio), DEFAULT_RATIO, ratio)
         return cls(
             model=robot.name,
             ratio=ratio,

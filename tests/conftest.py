@@ -1,4 +1,9 @@
-"""Shared fixtures: one simulated calibration recording per session (it takes ~15 s)."""
+"""Shared fixtures: one simulated calibration recording per session (it takes ~15 s).
+
+experiments/ goes on sys.path: the tests use its arm generators (``odd_arms``)."""
+
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -7,6 +12,8 @@ import jaxcomp
 from jaxcomp.hardware import Simulator, TrueRobot
 from jaxcomp.identify.plan_design import default_plan
 from jaxcomp.identify.recorder import record
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
 
 #: Viscous friction of the simulated truth, N m s/rad: unmodelled by the default plan's fit.
 VISCOUS = 0.003

@@ -17,7 +17,8 @@ def gen3():
 
 
 def test_builtin_models_load_with_expected_joints():
-    assert jaxcomp.builtin_models() == ["dingo_o", "gen3_lite", "mobile_gen3_lite"]
+    builtin = ["dingo_o", "gen3", "gen3_lite", "mobile_gen3_lite", "wx250s"]
+    assert jaxcomp.builtin_models() == builtin
     mobile = jaxcomp.load_robot("mobile_gen3_lite")
     assert mobile.joint_names[:3] == ("base_x", "base_y", "base_yaw")
     assert mobile.nv == 9

@@ -102,7 +102,7 @@ def test_draw_truth_is_per_world_and_within_its_spread(robot):
 
 
 def test_plan_signal_is_what_the_recorder_commands(robot, tiny_plan):
-    plan = sc.load_study_plan(robot, tiny_plan)
+    plan = sc.named_plan(robot, tiny_plan)
     start = sc.start_pose(robot)
     sig = sc.plan_signal(plan, start)
     moves = [Move(t, v, a, s) for _, _, t, v, a, s in plan.moves()]
@@ -272,7 +272,7 @@ def test_batched_moments_and_fits_are_the_single_recording_ones(robot, tiny_plan
     """The study's streamed, batched path (moments of all worlds per sweep, vmapped fit) gives
     what ``sweep_moments`` and ``jax_fit.fit`` give on the recording of a world."""
     truth = sc.draw_truth(robot, 1, SEED, sc.TruthSpread())
-    signal = sc.plan_signal(sc.load_study_plan(robot, tiny_plan), sc.start_pose(robot))
+    signal = sc.plan_signal(sc.named_plan(robot, tiny_plan), sc.start_pose(robot))
     sim = sc.simulator(None)
     res = sc.simulate(sim, truth, signal, seed=SEED, every=10, world_batch=1, keep=1)
     rec = res.recordings[0]
@@ -355,7 +355,7 @@ def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, tiny_p
     there, and a sweep in its own world starts from a freshly settled rest); the fits within
     1e-3 (ratio, relative) and 0.1 mA (friction)."""
     start = sc.start_pose(robot)
-    signal = sc.plan_signal(sc.load_study_plan(robot, tiny_plan), start)
+    signal = sc.plan_signal(sc.named_plan(robot, tiny_plan), start)
     seg = sc.plan_segments(signal, start, every=10)
     assert len(seg.begin) == 4 and seg.end[-1] == len(signal.q_ref)
     for k, (a, b, f) in enumerate(zip(seg.begin, seg.end, seg.first, strict=True)):

@@ -4,7 +4,16 @@ Each command is a module of this package registering itself on ``cli`` (``group.
 the package imports them all. Heavy imports happen inside the commands, so ``--help`` is quick.
 """
 
-from jaxcomp.cli import bench, calibrate, control, info, study, study_calibration, study_control  # noqa: F401  (registers the commands)
+from jaxcomp.cli import (  # noqa: F401  (registers the commands)
+    bench,
+    calibrate,
+    control,
+    info,
+    models,
+    study,
+    study_calibration,
+    study_control,
+)
 from jaxcomp.cli.group import cli, main
 
 __all__ = ["cli", "main"]

@@ -9,6 +9,7 @@ import click
 import numpy as np
 
 from jaxcomp.cli.group import cli
+from jaxcomp.cli.model_options import joint_names, model_options
 from jaxcomp.errors import InputError
 
 _METHODS = ("jax", "scipy")
@@ -83,9 +84,10 @@ def _table(columns: dict, links: list[str]) -> str:
     type=click.Choice(["sim", "kortex"]),
     default="sim",
     show_default=True,
-    help="sim: the simulated Gen3 Lite with a hidden true robot (written to DIR/truth.json); "
-    "kortex: the real arm through kortex_api.",
+    help="sim: the simulated --model with a hidden true robot (written to DIR/truth.json); "
+    "kortex: the real Gen3 Lite through kortex_api.",
 )
+@model_options("gen3_lite", "Robot model (the nominal model the fit starts from)")
 @click.option(
     "--out",
     "out_dir",
@@ -97,11 +99,11 @@ def _table(columns: dict, links: list[str]) -> str:
 )
 @click.option(
     "--plan",
-    "plan_file",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Calibration plan JSON (default: the paper's sweeps, -100..100 deg at "
-    "40 deg/s, several held poses per joint).",
+    default="default",
+    show_default=True,
+    help="default: the paper's sweeps (up to -100..100 deg inside each joint's limits at "
+    "40 deg/s, several held poses per joint); short: one -40..40 deg sweep per joint (a quick "
+    "check); or a plan JSON file.",
 )
 @click.option(
     "--seed",
@@ -116,7 +118,8 @@ def _table(columns: dict, links: list[str]) -> str:
     type=click.Path(dir_okay=False),
     default=None,
     help="True robot for the simulator, a params JSON (sim only; default: drawn "
-    "from --seed: the paper's ratios and frictions, COM offsets of a few mm).",
+    "from --seed around the model's nominal figures; the Gen3 Lite: the paper's ratios and "
+    "frictions; COM offsets of a few mm).",
 )
 @click.option("--ip", default="192.168.1.10", show_default=True, help="Arm address (kortex).")
 @click.option(
@@ -125,25 +128,30 @@ def _table(columns: dict, links: list[str]) -> str:
     help="Continue an interrupted calibration into the same DIR (keeps its sweeps).",
 )
 @click.option("--viewer", is_flag=True, help="Show the MuJoCo viewer (sim, needs a display).")
-def calibrate(backend, out_dir, plan_file, seed, truth_file, ip, resume, viewer) -> None:
+def calibrate(
+    backend, model, joints, site, out_dir, plan, seed, truth_file, ip, resume, viewer
+) -> None:
     """Run the calibration sweeps, record them at 1 kHz, and fit with both methods.
 
-    Each joint is swept from -100 to +100 deg and back at constant speed with the robot's own
-    position servo while the others are held, as in the paper (Section IV-A). The recording
+    Each current-controlled joint is swept (up to -100..+100 deg, inside its limits) and back
+    at constant speed with the robot's own position servo while the others are held, as in the
+    paper (Section IV-A). The recording
     is written incrementally (an interrupted run keeps its finished sweeps; --resume goes on).
     Then the joint JAX fit and the paper's scipy fit run on it and their parameters are
     printed side by side (with the truth, on the simulator).
     """
-    from jaxcomp.identify.plan import load_plan
-    from jaxcomp.identify.plan_design import default_plan
+    from jaxcomp.identify.named_plans import check_plan_name, named_plan
     from jaxcomp.identify.plots import plot_sweeps
     from jaxcomp.identify.recorder import record
     from jaxcomp.robot import load_robot
 
     out = Path(out_dir)
-    robot = load_robot("gen3_lite")
-    plan = load_plan(plan_file, robot) if plan_file else default_plan(robot)
-    click.echo(f"plan: {len(plan.sweeps)} sweeps, about {plan.duration():.0f} s of motion")
+    check_plan_name(plan)
+    robot = load_robot(model, joints=joint_names(joints), site=site)
+    if backend == "kortex" and robot.name != "gen3_lite":
+        raise InputError(f"--robot kortex drives a Gen3 Lite; --model {model} is not one")
+    the_plan = named_plan(robot, plan)
+    click.echo(f"plan: {len(the_plan.sweeps)} sweeps, about {the_plan.duration():.0f} s of motion")
     truth = None
     if backend == "sim":
         from jaxcomp.hardware import Simulator, TrueRobot
@@ -158,7 +166,7 @@ def calibrate(backend, out_dir, plan_file, seed, truth_file, ip, resume, viewer)
 
         arm = KortexArm(ip, robot=robot)
     with arm:
-        rec = record(arm, plan, out / "recording.npz", model="gen3_lite", resume=resume)
+        rec = record(arm, the_plan, out / "recording.npz", model=robot, resume=resume)
     click.echo(f"recorded {rec.n_samples} samples -> {out / 'recording.npz'}")
     fits = {}
     for method in _METHODS:

@@ -7,15 +7,20 @@ import math
 import click
 
 from jaxcomp.cli.group import cli
-from jaxcomp.errors import InputError, JaxcompError
+from jaxcomp.cli.model_options import joint_names, model_options
+from jaxcomp.errors import InputError, JaxcompError, ModelError
+
+#: The simulated robot when --model is not given: the Gen3 Lite on its Dingo-O base.
+DEFAULT_MODEL = "mobile_gen3_lite"
 
 _TRAJ_HELP = (
     "Target path KIND[:key=value,...]; positions m, speeds m/s, accelerations m/s^2. "
     "'static' (x,y,z absolute or dx,dy,dz from the start; default: the start position), "
     "'line:dx=,dy=,dz=,v=,passes=', 'circle:r=0.1,v=0.05[,turns=,dir=,cx=,cy=,cz=]' "
-    "(horizontal, starting at the end effector), 'half-circle' (the paper's Exp. 2: r=0.315, "
-    "v=0.101, passes=4, centred on the arm's vertical axis at the start height). Tracking "
-    "mode: world frame; guidance mode: the base's frame. Default: static."
+    "(horizontal, in the world's x-y plane: it starts at the end effector, its centre r "
+    "towards the arm's vertical axis), 'half-circle' (the paper's Exp. 2: r=0.315, "
+    "v=0.101, passes=4, centred on the arm's vertical axis at the start height). "
+    "Tracking mode: world frame; guidance mode: the base's frame. Default: static."
 )
 
 
@@ -86,12 +91,11 @@ def _target_marker(sim):
     help="sim: the MuJoCo simulator; kortex: the real Gen3 Lite (kortex_api) and, when ROS 2 "
     "is available, the Dingo-O.",
 )
-@click.option(
-    "--model",
-    default="mobile_gen3_lite",
-    show_default=True,
-    help="Simulated robot (sim only): mobile_gen3_lite (arm on the Dingo-O) or gen3_lite (the "
-    "arm alone, no base), or a model path.",
+@model_options(
+    DEFAULT_MODEL,
+    "Simulated robot (sim only; an arm model runs alone, a mobile model with base joints "
+    "base_x, base_y, base_yaw with its base; the arm starts at the model's 'home' keyframe, "
+    "else at a start pose chosen on the model)",
 )
 @click.option(
     "--params",
@@ -99,7 +103,8 @@ def _target_marker(sim):
     type=click.Path(dir_okay=False),
     default=None,
     help="Identified params JSON (ratios A/(N m), friction A, COM offsets m); default: the "
-    "model's nominal figures.",
+    "model's nominal figures. The joints it lists are the current-controlled joints (--joints, "
+    "if given, must agree).",
 )
 @click.option("--trajectory", default="static", show_default=True, help=_TRAJ_HELP)
 @click.option(
@@ -132,10 +137,12 @@ def _target_marker(sim):
     type=click.Choice(["tracking", "paper"]),
     default="tracking",
     show_default=True,
-    help="Impedance gains preset. tracking: K_d 400 N/m, D_d 30 N s/m, Eq. (16) with the "
-    "at-rest friction direction of the motion torque tau - g, t 0.02 rad/s, nullspace damping "
-    "0.3 (holds about 1 mm against the arm's full friction); paper: the paper's K_d 40 N/m, "
-    "D_d 3 N s/m, sign(tau), t 0.3 rad/s (with full friction the arm sticks: centimetres).",
+    help="Impedance gains preset, figures of the Gen3 Lite. tracking: K_d 400 N/m, D_d 30 N s/m, "
+    "Eq. (16) with the at-rest friction direction of the motion torque tau - g, t 0.02 rad/s, "
+    "nullspace damping 0.3 (holds about 1 mm against the arm's full friction); paper: the "
+    "paper's K_d 40 N/m, D_d 3 N s/m, sign(tau), t 0.3 rad/s (with full friction the arm "
+    "sticks: centimetres). Other arms: the figures their model declares, else these scaled to "
+    "the arm's apparent mass and reach (jaxcomp.control.presets); the run prints them.",
 )
 @click.option(
     "--stiffness",
@@ -179,6 +186,8 @@ def control(
     mode: str,
     backend: str,
     model: str,
+    joints: str | None,
+    site: str | None,
     params_file: str | None,
     trajectory: str,
     duration: float | None,
@@ -197,16 +206,19 @@ def control(
     """Run the compliant arm (current-based impedance control) with the base follower.
 
     The controller works at 1 kHz in the arm's base frame; the base (when there is one)
-    follows the end effector (paper Eq. 20). Any fault, stale or NaN feedback, out-of-range
-    command or Ctrl-C ends the run with the arm in position mode and the base stopped. Prints
-    how the run ended, the RMS tracking error (m) and the loop timing.
+    follows the end effector (paper Eq. 20). Any arm model works: its current-controlled
+    joints, end effector, posture ('preferred' keyframe, else a start pose chosen on the model),
+    current limits and gains come from the model; the simulated arm starts at its 'home' pose
+    (same fallback), the real one where it stands. Any fault,
+    stale or NaN feedback, out-of-range command or Ctrl-C ends the run with the arm in
+    position mode and the base stopped. Prints the gains, how the run ended, the RMS tracking
+    error (m) and the loop timing.
     """
     from jaxcomp.control.timing import configure_jax_for_control, realtime_priority
 
     # each controller step on the calling thread, single-threaded kernels: no thread hand-off
     configure_jax_for_control()
 
-    from jaxcomp.control.gains import ImpedanceGains
     from jaxcomp.control.impedance import make_impedance_controller
     from jaxcomp.control.loop import (
         ArmMount,
@@ -215,42 +227,51 @@ def control(
         mobile_model_name,
         run_control,
     )
+    from jaxcomp.control.presets import impedance_gains
     from jaxcomp.control.trajectory import parse_trajectory
     from jaxcomp.control.velocity import make_velocity_controller
     from jaxcomp.robot import load_robot
-    from jaxcomp.robot_params import RobotParams
+    from jaxcomp.robot_params import RobotParams, arm_joint_indices
 
     spec = parse_trajectory(trajectory)
     push_list = [parse_push(p) for p in pushes]
     if duration is not None and not (math.isfinite(duration) and duration > 0):
         raise InputError(f"--duration must be a positive number of s, got {duration}")
-    gains = ImpedanceGains.preset(preset)
     changes = {}
     if stiffness is not None:
         changes["stiffness"] = stiffness
     if damping is not None:
         changes["damping"] = damping
-    if changes:
-        gains = gains.replace(**changes)
 
     if backend == "kortex":
         if push_list:
             raise InputError("--push acts on the simulator only")
         if realtime is False:
             raise InputError("the real robot runs in real time only (drop --lockstep)")
+        options = (("--model", model != DEFAULT_MODEL), ("--joints", joints), ("--site", site))
+        given = [name for name, value in options if value]
+        if given:
+            raise InputError(
+                f"{', '.join(given)}: for the simulator only (--robot kortex drives the Gen3 Lite)"
+            )
         realtime = True
     elif realtime is None:
         realtime = viewer
+    params = RobotParams.load(params_file) if params_file is not None else None
+    chosen = _chosen_joints(joints, params, params_file)
 
     arm = base = sim = None
     try:
         if backend == "sim":
             from jaxcomp.hardware import Simulator
 
-            sim = Simulator(model, seed=seed, viewer=viewer)
+            from_params = params if joints is None else None
+            robot = _load_model(model, chosen, site, from_params, params_file)
+            if not len(arm_joint_indices(robot)):
+                raise ModelError(f"{robot.name} has no arm joints: nothing to control")
+            sim = Simulator(robot, seed=seed, viewer=viewer, initial_pose="home")
             arm = sim.arm
             base = sim.base if sim.has_base else None
-            robot = sim.robot
         else:
             from jaxcomp.hardware import DingoBase, KortexArm
 
@@ -271,13 +292,19 @@ def control(
             if base is not None:
                 robot = load_robot(mobile_model_name(robot))
         arm_robot = arm_model(robot)
-        params = None
-        if params_file is not None:
-            params = arm_params(RobotParams.load(params_file), arm_robot)
+        if params is not None:
+            if params.model not in (robot.name, arm_robot.name):
+                raise InputError(
+                    f"{params_file}: the params are for model {params.model!r}, the robot is "
+                    f"{robot.name!r}"
+                )
+            params = arm_params(params, arm_robot)
         if law == "velocity":
             controller = make_velocity_controller(arm_robot)
         else:
+            gains = impedance_gains(arm_robot, preset, **changes)
             controller = make_impedance_controller(arm_robot, params, gains)
+            click.echo(_describe_gains(preset, controller), err=True)
         click.echo(f"compiling the controller for {arm_robot.name} ...", err=True)
         if hasattr(controller, "compile"):
             controller.compile()
@@ -310,3 +337,53 @@ def control(
     click.echo(result.summary())
     if not result.ok:
         raise SystemExit(1)
+
+
+def _chosen_joints(text: str | None, params, params_file: str | None) -> list[str] | None:
+    """The current-controlled joints: --joints, else the params file's, else None (the
+    model's own); InputError when both are given and differ."""
+    listed = None if text is None else list(joint_names(text))
+    if listed is not None and not listed:
+        raise InputError(f"--joints {text!r}: expected joint names separated by commas")
+    from_params = list(params.joints) if params is not None and params.joints else None
+    if listed is not None and from_params is not None and listed != from_params:
+        raise InputError(
+            f"--joints {','.join(listed)} differ from the joints of {params_file}: "
+            f"{','.join(from_params)}"
+        )
+    return listed if listed is not None else from_params
+
+
+def _load_model(model: str, joints, site, from_params, params_file):
+    """``load_robot(model, joints=, site=)``; joints taken from the params ``from_params``
+    (None: not from a params file) that do not fit the model are reported against the file."""
+    from jaxcomp.robot import load_robot
+
+    try:
+        return load_robot(model, joints=joints, site=site)
+    except ModelError as exc:
+        if joints is not None and from_params is not None:
+            raise InputError(
+                f"{params_file} is for model {from_params.model!r}, joints {', '.join(joints)}, "
+                f"which do not fit {model}: {exc}"
+            ) from None
+        raise
+
+
+def _describe_gains(preset: str, controller) -> str:
+    """One line: the impedance gains of the run (per-joint figures as their range)."""
+    import numpy as np
+
+    g, j = controller.gains, controller.joint
+
+    def span(values, fmt: str) -> str:
+        lo, hi = float(min(values)), float(max(values))
+        return format(lo, fmt) if lo == hi else f"{lo:{fmt}}-{hi:{fmt}}"
+
+    rate = np.broadcast_to(g.current_rate_limit, j.limit.shape)
+    return (
+        f"gains ({preset}) for {controller.robot.name}: K_d {span(g.stiffness, '.4g')} N/m, "
+        f"D_d {span(g.damping, '.4g')} N s/m, K_n {span(j.stiffness, '.3g')} N m/rad, "
+        f"D_n {span(j.damping, '.3g')} N m s/rad, error clip {g.error_clip:.3g} m, "
+        f"current limit {span(j.limit, '.3g')} A, rate limit {span(rate, '.4g')} A/s"
+    )

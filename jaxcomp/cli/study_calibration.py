@@ -8,10 +8,12 @@ from pathlib import Path
 
 import click
 
+from jaxcomp.cli.model_options import joint_names, model_options
 from jaxcomp.cli.study import study
 
 
 @study.command("calibration")
+@model_options("gen3_lite", "Robot model studied")
 @click.option("--worlds", type=int, required=True, help="Simulated true robots N (>= 1).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of every draw.")
 @click.option(
@@ -35,7 +37,7 @@ from jaxcomp.cli.study import study
     default="default",
     show_default=True,
     help="default: the paper's plan (~230 s of sweeps); short: one +-40 deg sweep per joint "
-    "(~26 s, for CPU runs and CI); or a plan JSON file.",
+    "(~30 s, for CPU runs and CI); or a plan JSON file.",
 )
 @click.option(
     "--every",
@@ -88,6 +90,9 @@ from jaxcomp.cli.study import study
 )
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def calibration(
+    model: str,
+    joints: str | None,
+    site: str | None,
     worlds: int,
     seed: int,
     out_dir: str,
@@ -107,7 +112,7 @@ def calibration(
 ) -> None:
     """Calibrate N simulated true robots at once and compare with their truth (MJX).
 
-    Each world: a Gen3 Lite whose ratios and friction losses are off nominal by 20-30 % and
+    Each world: a --model arm whose ratios and friction losses are off nominal by 20-30 % and
     whose links' COM are off by a few mm, with current noise. The calibration plan is recorded
     in all worlds at once on MJX (1 kHz, recorded at 1 kHz / --every), every world is fitted
     with the joint JAX fit (batched on the accelerator) and the first M with the paper's scipy
@@ -136,6 +141,9 @@ def calibration(
         poses=poses,
         parallel=parallel,
     )
-    result = study_into(Path(out_dir), settings, progress=progress)
+    from jaxcomp.robot import load_robot
+
+    robot = load_robot(model, joints=joint_names(joints), site=site)
+    result = study_into(Path(out_dir), settings, progress=progress, robot=robot)
     click.echo(summary(result.report))
     click.echo("wrote " + ", ".join(str(p) for p in result.paths))

@@ -9,10 +9,12 @@ from pathlib import Path
 
 import click
 
+from jaxcomp.cli.model_options import joint_names, model_options
 from jaxcomp.cli.study import study
 
 
 @study.command("control")
+@model_options("gen3_lite", "Robot model studied")
 @click.option("--worlds", type=int, default=64, show_default=True, help="Simulated robots.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of every draw.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False), default="study_control")
@@ -67,6 +69,9 @@ from jaxcomp.cli.study import study
 )
 @click.option("--devices", type=int, default=None, help="Shard over N devices (default all).")
 def control(
+    model: str,
+    joints: str | None,
+    site: str | None,
     worlds: int,
     seed: int,
     out_dir: str,
@@ -106,5 +111,8 @@ def control(
         push=push,
         devices=devices,
     )
-    result = study_into(Path(out_dir), settings)
+    from jaxcomp.robot import load_robot
+
+    robot = load_robot(model, joints=joint_names(joints), site=site)
+    result = study_into(Path(out_dir), settings, robot=robot)
     click.echo(summary(result.report, result.paths[0]))

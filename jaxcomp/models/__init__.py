@@ -8,4 +8,6 @@ BUILTIN = {
     "gen3_lite": MODEL_DIR / "gen3_lite.xml",
     "dingo_o": MODEL_DIR / "dingo_o.xml",
     "mobile_gen3_lite": MODEL_DIR / "mobile_gen3_lite.xml",
+    "gen3": MODEL_DIR / "gen3.xml",
+    "wx250s": MODEL_DIR / "wx250s.xml",
 }

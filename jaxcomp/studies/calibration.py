@@ -47,6 +47,7 @@ from jaxcomp.errors import InputError
 from jaxcomp.identify.evaluate import random_poses
 from jaxcomp.identify.jax_fit import fit_batch as batch_fit
 from jaxcomp.identify.jax_fit import fit_model
+from jaxcomp.identify.named_plans import check_plan_name, named_plan, short_plan
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import json_ready, write_json_atomic
 from jaxcomp.studies.calibration_estimates import Estimates, jax_estimates, scipy_estimates
@@ -58,14 +59,7 @@ from jaxcomp.studies.calibration_statistics import (
     parameter_table,
 )
 from jaxcomp.studies.plan_recording import simulate
-from jaxcomp.studies.plan_signal import (
-    check_study_plan,
-    load_study_plan,
-    plan_segments,
-    plan_signal,
-    short_plan,
-    start_pose,
-)
+from jaxcomp.studies.plan_signal import plan_segments, plan_signal, start_pose
 from jaxcomp.studies.setup import MODEL, check_out_dir, simulator
 from jaxcomp.studies.truth_draw import TruthSpread, draw_truth
 
@@ -79,7 +73,7 @@ __all__ = [  # the study, and the stages it composes
     "TruthSpread",
     "check_out_dir",
     "draw_truth",
-    "load_study_plan",
+    "named_plan",
     "plan_segments",
     "plan_signal",
     "plot_coverage",
@@ -134,7 +128,7 @@ class CalibrationSettings:
     parallel: bool | None = None
 
     def __post_init__(self) -> None:
-        check_study_plan(self.plan)
+        check_plan_name(self.plan)
         checks = {
             "--worlds": (self.worlds, 1),
             "--every": (self.every, 1),
@@ -171,7 +165,7 @@ def run_study(
             ) from None
     t_all = time.perf_counter()
     robot = load_robot(MODEL) if robot is None else robot
-    the_plan = load_study_plan(robot, plan)
+    the_plan = named_plan(robot, plan)
     signal = plan_signal(the_plan, start_pose(robot))
     sim = simulator(settings.devices, robot)
     model = fit_model(robot)

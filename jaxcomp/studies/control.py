@@ -38,7 +38,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jaxcomp.constants import CONTROL_PERIOD
-from jaxcomp.control import ImpedanceGains
+from jaxcomp.control import ImpedanceGains, impedance_gains
 from jaxcomp.control.trajectory import Trajectory, parse_trajectory
 from jaxcomp.errors import InputError
 from jaxcomp.hardware import PAPER_FRICTION, PAPER_RATIO
@@ -183,11 +183,21 @@ def model_errors(
 
 
 # ----------------------------------------------------------------------------- the study
+#: m, the radius of the paper's half circle (Exp. 2).
+PAPER_RADIUS = 0.315
+
+
 def trajectory_for(robot: Robot, passes: int) -> tuple[np.ndarray, Trajectory]:
     """(start (3,) m, the half circle from it): the end effector at the ``home`` pose (the
-    worlds settle within a fraction of a mm of it; the controller starts from where each is)."""
-    start = np.asarray(robot.site_position(robot.pose("home"), "end_effector"), float)
-    return start, parse_trajectory(f"half-circle:passes={passes}").build(start)
+    worlds settle within a fraction of a mm of it; the controller starts from where each is).
+    The paper's radius (``PAPER_RADIUS``), or the start's horizontal distance from the arm's
+    vertical axis where that is smaller (a smaller arm)."""
+    start = np.asarray(robot.site_position(robot.pose("home"), robot.end_effector), float)
+    radius = float(np.hypot(start[0], start[1]))
+    spec = f"half-circle:passes={passes}"
+    if radius < PAPER_RADIUS:
+        spec += f",r={radius:.4f}"
+    return start, parse_trajectory(spec).build(start)
 
 
 def _stats(values: np.ndarray, quantiles: tuple = (50, 95)) -> dict[str, float | None]:
@@ -208,7 +218,7 @@ class ControlSettings:
         duration: s of half-circle tracking after the 2 s compliance phase (None: the whole
             lead-in and ``passes`` passes). passes: half-circle passes (>= 1).
         force: N, the push. gains: the controller's ``ImpedanceGains``, or the name of a
-            preset (``ImpedanceGains.preset``; the report then names it).
+            preset (``impedance_gains(robot, preset)``; the report then names it).
         params_error: relative ratio and friction errors of the controller, U(-E, E) per joint
             (< 1). com_error: m, COM errors of the controller, U(-D, D) per axis of every
             moving link. nominal: the controller has the model's nominal ratios, no friction
@@ -254,8 +264,8 @@ def run_study(
     if params_error >= 1:
         raise InputError(f"--params-error must be < 1 (relative), got {params_error}")
     preset = settings.gains if isinstance(settings.gains, str) else None
-    gains = settings.gains if preset is None else ImpedanceGains.preset(preset)
     robot = load_robot(MODEL) if robot is None else robot
+    gains = settings.gains if preset is None else impedance_gains(robot, preset)
     start, trajectory = trajectory_for(robot, passes)
     if duration is None:
         duration = trajectory.duration

@@ -1,57 +1,18 @@
 """A calibration plan as the 1 kHz signals the simulated worlds follow and record: whole
 (``plan_signal``) or cut into its sweeps, to be simulated side by side (``plan_segments``).
 
-Plans by name: "default" (the paper's, ``identify.plan_design.default_plan``), "short"
-(``short_plan``) or a plan JSON file. Angles in rad, one sample per 1 ms step.
+Plans by name come from ``identify.named_plans``. Angles in rad, one sample per 1 ms step.
 """
 
-import math
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.mjx import Move, reference_trajectory
-from jaxcomp.identify.plan import CalibrationPlan, arm_pose, load_plan
-from jaxcomp.identify.plan_design import default_plan
+from jaxcomp.identify.plan import CalibrationPlan, arm_pose
 from jaxcomp.identify.recorder import MOVE_DIRECTION
 from jaxcomp.robot import Robot
-
-#: Plan names of ``--plan`` (else a plan JSON file).
-PLANS = ("default", "short")
-
-
-def short_plan(robot: Robot) -> CalibrationPlan:
-    """A quick plan for CPU runs and CI (~26 s instead of ~230 s for the Gen3 Lite): one sweep
-    per joint over -40..+40 deg at 60 deg/s (the default plan's held-pose search), transfers
-    at 90 deg/s, 0.2 s settling. One speed per joint: the fit holds viscous friction at 0."""
-    return default_plan(
-        robot,
-        sweeps_per_joint=1,
-        lower=math.radians(-40),
-        upper=math.radians(40),
-        speed=math.radians(60),
-        slow_speed=None,
-        move_speed=math.radians(90),
-        settle=0.2,
-        min_span=math.radians(60),
-    )
-
-
-def check_study_plan(plan: str) -> None:
-    """InputError unless ``plan`` is one of ``PLANS`` or an existing file."""
-    if plan not in PLANS and not Path(plan).is_file():
-        raise InputError(f"--plan must be one of {', '.join(PLANS)} or a plan JSON file: {plan}")
-
-
-def load_study_plan(robot: Robot, plan: str) -> CalibrationPlan:
-    """``plan``: "default" (the paper's, ``default_plan``), "short" or a plan JSON file."""
-    if plan == "default":
-        return default_plan(robot)
-    if plan == "short":
-        return short_plan(robot)
-    return load_plan(plan, robot)
 
 
 def start_pose(robot: Robot) -> np.ndarray:
