@@ -8,21 +8,21 @@ per joint or null).
 
 The truth is relative to the model's own figures (``TrueRobot.draw``):
 
-- A model may state its simulator's true ratios and friction losses, custom numerics
+- A model may state its simulator's true ratios and friction losses, per-joint custom numerics
   ``jaxcomp_sim_ratio`` (A/(N m)) and ``jaxcomp_sim_friction`` (A), and its current noise,
   ``jaxcomp_sim_current_noise`` (A): the Gen3 Lite states the paper's identified values.
 - Otherwise ratios are the nominal ratio (``RobotParams.nominal``: the model's
-  ``jaxcomp_nominal_ratio``, else 1 A/(N m)) times U(``RATIO_SPREAD``), and friction losses
-  and current noise scale with each joint's *full current* (``full_current``): the nominal ratio
-  times the effort limit, at most the model's ``jaxcomp_current_limit``. A joint whose full
-  current is ``REFERENCE_CURRENT`` (11 A, the Gen3 Lite's current limit; also a joint with
-  neither an effort nor a current limit) gets friction losses U(``FRICTION_LOSS``) = U(0.2,
-  0.6) A, about 2-5 % of its full current, and the current noise ``DEFAULT_CURRENT_NOISE``
-  (0.05 A); other joints scale both by full current / 11 A, so that a small arm whose currents
-  are ~1 A gets friction losses of ~0.02-0.05 A, not ones comparable to its gravity current.
-  The rule trusts the model's effort limits: a model with placeholder limits (URDF
-  ``effort="1000"``) gets friction losses to match; state ``jaxcomp_sim_friction`` or real
-  limits.
+  ``jaxcomp_nominal_ratio``, else ``DEFAULT_RATIO``, 1 A/(N m)) times U(``RATIO_SPREAD``), and
+  friction losses and current noise scale with each joint's current limit
+  (``jaxcomp.hardware.interface.current_limits``: the model's ``jaxcomp_current_limit``, else
+  the effort limit times the nominal ratio, else ``DEFAULT_CURRENT_LIMIT``, 11 A). A joint whose
+  current limit is 11 A (the Gen3 Lite's) gets friction losses U(``FRICTION_LOSS``) = U(0.2,
+  0.6) A, 2-5 % of its limit, and the current noise ``DEFAULT_CURRENT_NOISE`` (0.05 A); other
+  joints scale both by their current limit / 11 A, so that a small arm whose currents are
+  ~1 A gets friction losses of ~0.02-0.05 A, not ones comparable to its gravity current. The
+  rule trusts the model's limits: a model with placeholder effort limits (URDF
+  ``effort="1000"``) and no current limit gets friction losses to match; state real limits or
+  ``jaxcomp_sim_friction``.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ import mujoco
 import numpy as np
 
 from jaxcomp.errors import InputError, ModelError
+from jaxcomp.hardware.interface import DEFAULT_CURRENT_LIMIT, current_limits
 from jaxcomp.robot import Robot
 from jaxcomp.robot_params import RobotParams, _vector, arm_joint_indices, arm_joint_names
 
@@ -42,36 +43,29 @@ from jaxcomp.robot_params import RobotParams, _vector, arm_joint_indices, arm_jo
 #: (the Gen3 Lite models state them as ``jaxcomp_sim_ratio`` and ``jaxcomp_sim_friction``).
 PAPER_RATIO = (1.0282, 0.3074, 1.0282, 1.9074, 2.0373, 1.9724)
 PAPER_FRICTION = (0.5318, 1.4776, 0.6695, 0.3013, 0.3732, 0.5923)
-DEFAULT_CURRENT_NOISE = 0.05  # A, standard deviation of the measured current at 11 A full current
+#: A, standard deviation of the measured current of a joint whose current limit is 11 A.
+DEFAULT_CURRENT_NOISE = 0.05
 DEFAULT_COM_OFFSET = 0.004  # m, COM offsets are drawn uniformly in +-this per axis
 #: A drawn true ratio is the nominal ratio times U(lo, hi).
 RATIO_SPREAD = (0.9, 1.25)
-#: A: a drawn friction loss is U(lo, hi) times full current / ``REFERENCE_CURRENT``.
+#: A: a drawn friction loss is U(lo, hi) times the current limit / ``DEFAULT_CURRENT_LIMIT``.
 FRICTION_LOSS = (0.2, 0.6)
-#: A: the full current of the ``FRICTION_LOSS`` and ``DEFAULT_CURRENT_NOISE`` figures.
-REFERENCE_CURRENT = 11.0
 
 
-def _numeric(
-    robot: Robot, name: str, n: int, *, one: bool = False, positive: bool = True
-) -> np.ndarray | None:
-    """The model's custom numeric ``name``: (n,) values (a single value broadcast when
-    ``one``), or None when absent; ``ModelError`` for another size or a value that is not
-    finite and > 0 (>= 0 unless ``positive``)."""
-    value = robot.custom_numeric(name)
+def _stated(robot: Robot, name: str, positive: bool) -> np.ndarray | None:
+    """A per-joint custom numeric of the simulator's truth (``Robot.joint_numeric``), or None
+    when absent; ``ModelError`` unless every joint has a finite value > 0 (>= 0 unless
+    ``positive``)."""
+    value = robot.joint_numeric(name)
     if value is None:
         return None
-    if one and value.size == 1:
-        value = np.full(n, float(value[0]))
-    if value.shape != (n,):
-        raise ModelError(
-            f"{robot.name}: custom numeric {name} has {value.size} values; it needs {n}"
-            + (" (or one)" if one else "")
-        )
-    bad = (value <= 0) if positive else (value < 0)
-    if not np.all(np.isfinite(value)) or np.any(bad):
+    bad = ~np.isfinite(value) | ((value <= 0) if positive else (value < 0))
+    if bad.any():
         sign = "> 0" if positive else ">= 0"
-        raise ModelError(f"{robot.name}: custom numeric {name} must be finite and {sign}: {value}")
+        raise ModelError(
+            f"{robot.name}: custom numeric {name} must give every current-controlled joint a "
+            f"finite value {sign}, got {value.tolist()}"
+        )
     return value
 
 
@@ -79,9 +73,8 @@ def stated_truth(robot: Robot) -> tuple[np.ndarray, np.ndarray] | None:
     """The simulator's true ratios (n,) A/(N m) and friction losses (n,) A that the model
     states (custom numerics ``jaxcomp_sim_ratio`` and ``jaxcomp_sim_friction``), or None when
     it states neither; ``ModelError`` when it states one alone."""
-    n = len(arm_joint_indices(robot))
-    ratio = _numeric(robot, "jaxcomp_sim_ratio", n)
-    friction = _numeric(robot, "jaxcomp_sim_friction", n, positive=False)
+    ratio = _stated(robot, "jaxcomp_sim_ratio", positive=True)
+    friction = _stated(robot, "jaxcomp_sim_friction", positive=False)
     if (ratio is None) != (friction is None):
         raise ModelError(
             f"{robot.name}: the model states one of jaxcomp_sim_ratio and jaxcomp_sim_friction "
@@ -90,34 +83,31 @@ def stated_truth(robot: Robot) -> tuple[np.ndarray, np.ndarray] | None:
     return None if ratio is None else (ratio, friction)
 
 
-def full_current(robot: Robot) -> np.ndarray:
-    """(n,) A per current-controlled joint: the nominal ratio (``RobotParams.nominal``) times
-    the effort limit, at most the model's ``jaxcomp_current_limit``; ``REFERENCE_CURRENT`` for a
-    joint with neither limit."""
-    n = len(arm_joint_indices(robot))
-    ratio = RobotParams.nominal(robot).ratio
-    current = ratio * robot.effort_limits[arm_joint_indices(robot)]
-    limit = _numeric(robot, "jaxcomp_current_limit", n, one=True)
-    if limit is not None:
-        current = np.minimum(current, limit)
-    return np.where(np.isfinite(current), current, REFERENCE_CURRENT)
+def current_scale(robot: Robot) -> np.ndarray:
+    """(n,) each current-controlled joint's current limit (``current_limits``) over
+    ``DEFAULT_CURRENT_LIMIT``: the scale of its drawn friction loss and current noise."""
+    return current_limits(robot) / DEFAULT_CURRENT_LIMIT
 
 
 def friction_loss_range(robot: Robot) -> np.ndarray:
-    """(n, 2) A: the range of drawn friction losses, ``FRICTION_LOSS`` times full current /
-    ``REFERENCE_CURRENT``."""
-    scale = full_current(robot) / REFERENCE_CURRENT
-    return scale[:, None] * np.asarray(FRICTION_LOSS)
+    """(n, 2) A: the range of drawn friction losses, ``FRICTION_LOSS`` times
+    ``current_scale``."""
+    return current_scale(robot)[:, None] * np.asarray(FRICTION_LOSS)
 
 
 def model_current_noise(robot: Robot) -> float:
     """A, the standard deviation of the simulated current noise: the model's
-    ``jaxcomp_sim_current_noise``, else ``DEFAULT_CURRENT_NOISE`` times the mean full current
-    over ``REFERENCE_CURRENT``."""
-    stated = _numeric(robot, "jaxcomp_sim_current_noise", 1, positive=False)
-    if stated is not None:
-        return float(stated[0])
-    return DEFAULT_CURRENT_NOISE * float(np.mean(full_current(robot) / REFERENCE_CURRENT))
+    ``jaxcomp_sim_current_noise``, else ``DEFAULT_CURRENT_NOISE`` times the mean
+    ``current_scale`` over the joints."""
+    stated = robot.custom_numeric("jaxcomp_sim_current_noise")
+    if stated is None:
+        return DEFAULT_CURRENT_NOISE * float(np.mean(current_scale(robot)))
+    if stated.size != 1 or not np.isfinite(stated[0]) or stated[0] < 0:
+        raise ModelError(
+            f"{robot.name}: custom numeric jaxcomp_sim_current_noise must be one value >= 0 "
+            f"(A), got {stated.tolist()}"
+        )
+    return float(stated[0])
 
 
 def truth_centre(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
@@ -187,8 +177,8 @@ class TrueRobot:
         """A truth for ``robot`` drawn from ``seed`` (see the module docstring).
 
         Ratios and friction losses: the model's stated ones (``stated_truth``), else the
-        nominal ratio times U(``RATIO_SPREAD``) and U(``FRICTION_LOSS``) A times full current
-        / ``REFERENCE_CURRENT`` (``friction_loss_range``). COM offsets: U(-com_offset,
+        nominal ratio times U(``RATIO_SPREAD``) and U(``FRICTION_LOSS``) A times
+        ``current_scale`` (``friction_loss_range``). COM offsets: U(-com_offset,
         com_offset) m per axis on every link an arm joint moves. ``current_noise`` A (None:
         ``model_current_noise``).
         """
@@ -200,8 +190,7 @@ class TrueRobot:
             ratio, friction = stated
         else:
             ratio = RobotParams.nominal(robot).ratio * rng.uniform(*RATIO_SPREAD, n)
-            scale = full_current(robot) / REFERENCE_CURRENT
-            friction = rng.uniform(*FRICTION_LOSS, n) * scale
+            friction = rng.uniform(*FRICTION_LOSS, n) * current_scale(robot)
         moved = robot.tree.moves[arm].any(axis=0)
         offsets = {
             name: rng.uniform(-com_offset, com_offset, 3)

@@ -21,10 +21,9 @@ from jaxcomp.hardware.truth import (
     PAPER_FRICTION,
     PAPER_RATIO,
     RATIO_SPREAD,
-    REFERENCE_CURRENT,
     TrueRobot,
+    current_scale,
     friction_loss_range,
-    full_current,
     model_current_noise,
     stated_truth,
     truth_centre,
@@ -117,7 +116,8 @@ SEVEN = serial_mjcf(
     ],
     gripper=True,
 )
-#: A small light arm (Dynamixel-like: 1-1.5 N m, 0.6 A/(N m), 2 A) with a gripper.
+#: A small light arm (Dynamixel-like: 1-1.5 N m at 0.6 A/(N m), no current limit stated)
+#: with a gripper.
 SMALL = serial_mjcf(
     "small",
     [
@@ -127,8 +127,7 @@ SMALL = serial_mjcf(
         ("y", (-100, 110), 1.0, 0.126, 0.1),
     ],
     gripper=True,
-    custom='<custom><numeric name="jaxcomp_nominal_ratio" data="0.6 0.6 0.6 0.6"/>'
-    '<numeric name="jaxcomp_current_limit" data="2"/></custom>',
+    custom='<custom><numeric name="jaxcomp_nominal_ratio" data="0.6"/></custom>',
 )
 #: 3 joints, two whose limits exclude zero, one without an effort limit.
 THREE = serial_mjcf(
@@ -272,7 +271,7 @@ def test_batched_draw_is_the_cpu_draw(robots):
 
 def test_truth_of_any_arm_follows_its_own_figures(robots):
     """Ratios around the nominal (the model's, else 1 A/(N m)); friction losses in the range
-    that scales with each joint's full current; current noise scaled alike."""
+    that scales with each joint's current limit; current noise scaled alike."""
     for name, robot in robots.items():
         n = len(arm_joint_indices(robot))
         nominal = robot.custom_numeric("jaxcomp_nominal_ratio")
@@ -285,19 +284,23 @@ def test_truth_of_any_arm_follows_its_own_figures(robots):
             assert np.all((RATIO_SPREAD[0] <= rel) & (rel <= RATIO_SPREAD[1])), name
             assert np.all((span[:, 0] <= t.friction) & (t.friction <= span[:, 1])), name
             assert t.current_noise == model_current_noise(robot)
-    # the small arm: full current 0.6 A/(N m) x 1.5 N m = 0.9 A (under its 2 A limit), so
-    # friction losses of 0.016-0.049 A, not the 0.2-0.6 A of an 11 A joint
+    # the small arm: current limits 0.6 A/(N m) x 1.5 N m = 0.9 A, so friction losses of
+    # 0.016-0.049 A, not the 0.2-0.6 A of an 11 A joint
     small = robots["small"]
-    np.testing.assert_allclose(full_current(small), [0.9, 0.9, 0.9, 0.6])
+    np.testing.assert_allclose(current_scale(small) * 11, [0.9, 0.9, 0.9, 0.6])
     np.testing.assert_allclose(
         span := friction_loss_range(small)[0], np.array(FRICTION_LOSS) * 0.9 / 11
     )
     assert span[1] < 0.05
     assert model_current_noise(small) == pytest.approx(0.05 * 0.825 / 11)
-    # no effort limit and no current limit: the reference figures (today's 0.2-0.6 A)
+    # no effort limit and no current limit: the 11 A figures (0.2-0.6 A)
     three = robots["three"]
-    assert full_current(three)[0] == REFERENCE_CURRENT
+    assert current_scale(three)[0] == 1.0
     np.testing.assert_array_equal(friction_loss_range(three)[0], FRICTION_LOSS)
+    # the built-in DYNAMIXEL arm: 3.209 A servos
+    wx = jaxcomp.load_robot("wx250s")
+    np.testing.assert_allclose(friction_loss_range(wx), [np.array(FRICTION_LOSS) * 3.209 / 11] * 5)
+    assert model_current_noise(wx) == pytest.approx(0.05 * 3.209 / 11)
     # friction torque (loss / ratio) stays a few % of the effort limit
     t = TrueRobot.draw(small, 0)
     assert np.all(t.friction_torque < 0.06 * small.effort_limits[arm_joint_indices(small)])
@@ -320,7 +323,7 @@ def test_stated_truth_must_be_whole(tmp_path):
         '<custom><numeric name="jaxcomp_sim_ratio" data="1 1 1"/>'
         '<numeric name="jaxcomp_sim_friction" data="0.1 0.1"/></custom>'
     )
-    with pytest.raises(ModelError, match="jaxcomp_sim_ratio has 3 values; it needs 2"):
+    with pytest.raises(ModelError, match="jaxcomp_sim_ratio has 3 entries"):
         TrueRobot.draw(size, 0)
     stated = robot(
         '<custom><numeric name="jaxcomp_sim_ratio" data="0.5 2"/>'
