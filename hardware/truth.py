@@ -55,10 +55,11 @@ REFERENCE_CURRENT = 11.0
 def _numeric(
     robot: Robot, name: str, n: int, *, one: bool = False, positive: bool = True
 ) -> np.ndarray | None:
-    """The model's custom numeric ``name``: (n,) values (a single value broadcast when
-    ``one``), or None when absent; ``ModelError`` for another size or a value that is not
-    finite and > 0 (>= 0 unless ``positive``)."""
-    value = robot.custom_numeric(name)
+    """The model's custom numeric ``name``: (n,) values per current-controlled joint
+    (``Robot.joint_numeric``; a single value broadcast when ``one``), or None when absent;
+    ``ModelError`` for another size or a value that is not finite and > 0 (>= 0 unless
+    ``positive``), e.g. a joint it gives no value."""
+    value = robot.custom_numeric(name) if n == 1 else robot.joint_numeric(name)
     if value is None:
         return None
     if one and value.size == 1:
