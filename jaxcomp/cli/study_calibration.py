@@ -62,7 +62,10 @@ from jaxcomp.cli.study import study
     "by 1 +- U(LO, HI) (friction: - where + would take over 35 % of the effort limit).",
 )
 @click.option(
-    "--noise", type=float, default=0.05, show_default=True, help="True current noise (std), A."
+    "--noise",
+    type=float,
+    default=None,
+    help="True current noise (std), A (default: the model's; 0.05 A on the Gen3 Lite).",
 )
 @click.option(
     "--viscous",
@@ -100,7 +103,7 @@ def calibration(
     baseline_sample: int,
     plan: str,
     every: int,
-    noise: float,
+    noise: float | None,
     com_offset: float,
     model_error: tuple[float, float],
     viscous: float,

@@ -239,7 +239,7 @@ def run_study(
         },
         "record_every": every,
         "record_rate_hz": 1.0 / (CONTROL_PERIOD * every),
-        "truth": dataclasses.asdict(spread),
+        "truth": dataclasses.asdict(spread) | {"noise": float(truth.current_noise[0])},
         "backend": backend,
         "devices": [str(d) for d in mesh.devices.flat],
         "world_batch": world_batch,

@@ -41,14 +41,13 @@ from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.control import ImpedanceGains, impedance_gains
 from jaxcomp.control.trajectory import Trajectory, parse_trajectory
 from jaxcomp.errors import InputError
-from jaxcomp.hardware import PAPER_FRICTION, PAPER_RATIO
 from jaxcomp.hardware.mjx import (
     SETTLE_STEPS,
     BatchTruth,
     PushSchedule,
     fault_names,
 )
-from jaxcomp.hardware.truth import DEFAULT_COM_OFFSET
+from jaxcomp.hardware.truth import DEFAULT_COM_OFFSET, truth_centre
 from jaxcomp.identify.evaluate import gravity_current_error_batch, random_poses
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import RobotParams, arm_joint_indices, json_ready, write_json_atomic
@@ -116,7 +115,8 @@ def draw_worlds(
 ) -> tuple[BatchTruth, dict[str, np.ndarray], np.ndarray]:
     """(truth, controller params, push directions (W, 3)) drawn from ``seed``.
 
-    Truth per world: the paper's ratios x U(0.9, 1.1) and friction losses x U(0.8, 1.2), COM
+    Truth per world: the model's ratios and friction losses (``truth_centre``; the Gen3 Lite:
+    the paper's) x U(0.9, 1.1) and x U(0.8, 1.2), COM
     offsets U(+-4 mm) per axis on every moving link, current noise ``noise`` A. Controller:
     ``nominal`` -> the model's nominal ratios, no friction compensation, nominal COM; else
     "identified-like": ratio and friction x (1 + U(-params_error, params_error)), COM offsets
@@ -127,8 +127,9 @@ def draw_worlds(
     rng = np.random.default_rng(seed)
     n, nb = len(arm_joint_indices(robot)), len(robot.link_names)
     moved = robot.tree.moves.any(axis=0)[None, :, None]
-    ratio = np.asarray(PAPER_RATIO) * rng.uniform(0.9, 1.1, (worlds, n))
-    friction = np.asarray(PAPER_FRICTION) * rng.uniform(0.8, 1.2, (worlds, n))
+    ratio_c, friction_c = truth_centre(robot)
+    ratio = ratio_c * rng.uniform(0.9, 1.1, (worlds, n))
+    friction = friction_c * rng.uniform(0.8, 1.2, (worlds, n))
     com = rng.uniform(-DEFAULT_COM_OFFSET, DEFAULT_COM_OFFSET, (worlds, nb, 3)) * moved
     truth = BatchTruth.from_arrays(robot, ratio, friction, com_offset=com, current_noise=noise)
     err = rng.uniform(-1.0, 1.0, (2, worlds, n)) * params_error

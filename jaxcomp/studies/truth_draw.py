@@ -11,8 +11,8 @@ import math
 import numpy as np
 
 from jaxcomp.errors import InputError
-from jaxcomp.hardware import PAPER_FRICTION, PAPER_RATIO
 from jaxcomp.hardware.mjx import BatchTruth
+from jaxcomp.hardware.truth import friction_loss_torque, model_current_noise, truth_centre
 from jaxcomp.identify.jax_fit import fit_model
 from jaxcomp.robot import Robot
 from jaxcomp.robot_params import RobotParams
@@ -28,12 +28,14 @@ class TruthSpread:
     Attributes:
         model_error: (lo, hi): each actuator type's current/torque ratio is off its nominal
             (Kinova's) by a factor 1 +- U(lo, hi), random sign; each joint's Coulomb friction
-            torque off the paper's (``PAPER_FRICTION / PAPER_RATIO``) by 1 +- U(lo, hi), the
+            torque off the model's (``hardware.truth.truth_centre``: the Gen3 Lite's are the
+            paper's) by 1 +- U(lo, hi), the
             sign turned to - where + would leave less than ``headroom`` of the effort limit
             (the friction loss in A is then ratio x torque).
         type_spread: ratios of one actuator type differ by a further U(-s, s) (relative).
         com_offset: m, COM offsets U(-c, c) per axis of every moving link (link frame).
-        noise: A, standard deviation of the current noise, every world.
+        noise: A, standard deviation of the current noise, every world; None: the model's
+            (``hardware.truth.model_current_noise``: 0.05 A on the Gen3 Lite).
         viscous: N m s/rad, viscous friction U(0, v) per joint (0: none).
         headroom: fraction of each joint's effort limit left free of friction: the default
             plan lets gravity use 60 % of it, and a robot whose friction takes the rest cannot
@@ -43,7 +45,7 @@ class TruthSpread:
     model_error: tuple[float, float] = (0.2, 0.3)
     type_spread: float = 0.03
     com_offset: float = 0.004
-    noise: float = 0.05
+    noise: float | None = None
     viscous: float = 0.0
     headroom: float = 0.65
 
@@ -52,6 +54,8 @@ class TruthSpread:
         if not 0 <= lo <= hi < 1:
             raise InputError(f"--model-error must satisfy 0 <= LO <= HI < 1, got ({lo}, {hi})")
         for name in ("type_spread", "com_offset", "noise", "viscous", "headroom"):
+            if getattr(self, name) is None:
+                continue
             v = float(getattr(self, name))
             if not (math.isfinite(v) and v >= 0):
                 raise InputError(f"--{name.replace('_', '-')} must be a finite number >= 0")
@@ -63,7 +67,7 @@ def draw_truth(robot: Robot, worlds: int, seed: int, spread: TruthSpread) -> Bat
     """``BatchTruth`` of ``worlds`` true robots drawn from ``seed`` (see ``TruthSpread``).
 
     Each quantity has its own stream and world w is row w of it, so world w is the same for
-    any ``worlds`` > w. Friction torques scale the paper's for a 6-joint arm, else 0.1 N m.
+    any ``worlds`` > w. Friction torques scale the model's (``truth_centre``).
     Payload 0, gravity the model's (upright).
     """
     model = fit_model(robot)
@@ -83,8 +87,8 @@ def draw_truth(robot: Robot, worlds: int, seed: int, spread: TruthSpread) -> Bat
     mag, sign = off(0, (worlds, len(types)))
     ratio = ratio0 * (1 + sign * mag)[:, type_of]
     ratio *= 1 + rng(2).uniform(-1, 1, (worlds, n)) * spread.type_spread
-    paper = np.asarray(PAPER_FRICTION) / np.asarray(PAPER_RATIO)
-    torque0 = paper if n == len(paper) else np.full(n, 0.1)
+    ratio_c, friction_c = truth_centre(robot)
+    torque0 = friction_loss_torque(friction_c, ratio_c)  # N m
     mag, sign = off(3, (worlds, n))
     effort = np.abs(robot.model.jnt_actfrcrange).max(axis=1)[model.joints]  # N m
     sign = np.where(torque0 * (1 + mag) > (1 - spread.headroom) * effort, -1.0, sign)
@@ -94,7 +98,12 @@ def draw_truth(robot: Robot, worlds: int, seed: int, spread: TruthSpread) -> Bat
     com = rng(5).uniform(-1, 1, (worlds, nb, 3)) * spread.com_offset * moved[None, :, None]
     viscous = rng(6).uniform(0, 1, (worlds, n)) * spread.viscous
     return BatchTruth.from_arrays(
-        robot, ratio, friction, com_offset=com, current_noise=spread.noise, viscous=viscous
+        robot,
+        ratio,
+        friction,
+        com_offset=com,
+        current_noise=model_current_noise(robot) if spread.noise is None else spread.noise,
+        viscous=viscous,
     )
 
 
