@@ -50,11 +50,11 @@ def tiny_plan(robot, tmp_path_factory):
     """Joints 1-4 of the short plan over +-25 deg (joint 1 from -20 deg): a 14 s plan file."""
     short = sc.short_plan(robot)
     sweeps = [
-        Sweep(s.joint, s.hold, max(s.lower, math.radians(-25)), math.radians(25), s.speed)
+        Sweep(s.joint, s.hold, max(s.lower, math.radians(-25)), math.radians(25), math.radians(60))
         for s in short.sweeps
         if s.joint in (1, 2, 3, 4)
     ]
-    plan = CalibrationPlan(tuple(sweeps), short.move_speed, 0.2, short.ramp)
+    plan = CalibrationPlan(tuple(sweeps), math.radians(90), 0.2, short.ramp)
     return str(plan.save(tmp_path_factory.mktemp("plan") / "tiny.json"))
 
 
