@@ -44,15 +44,13 @@ import numpy as np
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.control.gains import IMPEDANCE_PRESETS, ImpedanceGains, check_fixed_base
 from jaxcomp.errors import InputError, ModelError
-from jaxcomp.hardware.interface import current_limits
+from jaxcomp.hardware.interface import DEFAULT_CURRENT_LIMIT, current_limits
 from jaxcomp.robot import Robot
 
 #: kg: the Gen3 Lite's apparent mass (smallest eigenvalue of Lambda) at its home pose.
 REFERENCE_APPARENT_MASS = 0.1203
 #: m: the Gen3 Lite's reach (chain of joint anchors to the end effector).
 REFERENCE_REACH = 0.914
-#: A: the current limit the default rate limit (``ImpedanceGains().current_rate_limit``) is for.
-REFERENCE_CURRENT_LIMIT = 11.0
 #: Largest D_n,j T / I_j of a derived nullspace damping (T = ``CONTROL_PERIOD``).
 DAMPING_NUMBER = 0.25
 #: Custom numeric a model declares a preset's figures in (``.format(preset=name)``).
@@ -143,10 +141,11 @@ def derived_preset(robot: Robot, preset: str) -> dict[str, float | tuple[float, 
 
 
 def current_rate_limits(robot: Robot) -> float | tuple[float, ...]:
-    """A/s: ``ImpedanceGains().current_rate_limit`` per ``REFERENCE_CURRENT_LIMIT`` of each
-    joint's current limit (2000 A/s for the Gen3 Lite's 11 A), one number when all agree."""
+    """A/s: ``ImpedanceGains().current_rate_limit`` (2000 A/s, meant for the Gen3 Lite's 11 A,
+    ``DEFAULT_CURRENT_LIMIT``) scaled by each joint's current limit over 11 A; one number when
+    all joints agree."""
     rate = ImpedanceGains().current_rate_limit
-    return _one_or_each(rate * (current_limits(robot) / REFERENCE_CURRENT_LIMIT))
+    return _one_or_each(rate * (current_limits(robot) / DEFAULT_CURRENT_LIMIT))
 
 
 def impedance_gains(robot: Robot, preset: str = "tracking", **changes) -> ImpedanceGains:
@@ -178,7 +177,6 @@ __all__ = [
     "DECLARED_FIELDS",
     "DECLARED_PRESET",
     "REFERENCE_APPARENT_MASS",
-    "REFERENCE_CURRENT_LIMIT",
     "REFERENCE_REACH",
     "ArmFigures",
     "arm_figures",
