@@ -293,7 +293,8 @@ def control(
                 robot = load_robot(mobile_model_name(robot))
         arm_robot = arm_model(robot)
         if params is not None:
-            if params.model not in (robot.name, arm_robot.name):
+            names = {r.name for r in (robot, arm_robot)} | {r.reference for r in (robot, arm_robot)}
+            if params.model not in names:  # a fit names the model as its recording does
                 raise InputError(
                     f"{params_file}: the params are for model {params.model!r}, the robot is "
                     f"{robot.name!r}"
