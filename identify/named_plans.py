@@ -13,19 +13,21 @@ from jaxcomp.robot import Robot
 PLANS = ("default", "short")
 
 
-def short_plan(robot: Robot) -> CalibrationPlan:
+def short_plan(
+    robot: Robot, speed: float = math.radians(55), move_speed: float = math.radians(55)
+) -> CalibrationPlan:
     """A quick plan for CPU runs and CI (~30 s instead of ~230 s for the Gen3 Lite): one sweep
-    per joint over -40..+40 deg (the default plan's held-pose search), sweeps and transfers at
-    55 deg/s (within the arms' 1 rad/s speed limit), 0.2 s settling. One speed per joint: the
-    fit holds viscous friction at 0."""
+    per joint over -40..+40 deg (the default plan's held-pose search), sweeps at ``speed`` and
+    transfers at ``move_speed`` rad/s (55 deg/s: within the arms' 1 rad/s speed limit), 0.2 s
+    settling. One speed per joint: the fit holds viscous friction at 0."""
     return default_plan(
         robot,
         sweeps_per_joint=1,
         lower=math.radians(-40),
         upper=math.radians(40),
-        speed=math.radians(55),
+        speed=speed,
         slow_speed=None,
-        move_speed=math.radians(55),
+        move_speed=move_speed,
         settle=0.2,
         min_span=math.radians(60),
     )

@@ -32,7 +32,6 @@ from jaxcomp.identify.evaluate import (
 )
 from jaxcomp.identify.moments import sweep_moments, world_moments
 from jaxcomp.identify.plan import CalibrationPlan, Sweep
-from jaxcomp.identify.plan_design import default_plan
 from jaxcomp.robot_params import RobotParams
 from jaxcomp.studies import calibration as sc
 
@@ -49,17 +48,7 @@ def robot():
 @pytest.fixture(scope="module")
 def tiny_plan(robot, tmp_path_factory):
     """Joints 1-4 of the short plan over +-25 deg (joint 1 from -20 deg): a 14 s plan file."""
-    short = default_plan(  # the short plan at 60 deg/s, transfers at 90 deg/s
-        robot,
-        sweeps_per_joint=1,
-        lower=math.radians(-40),
-        upper=math.radians(40),
-        speed=math.radians(60),
-        slow_speed=None,
-        move_speed=math.radians(90),
-        settle=0.2,
-        min_span=math.radians(60),
-    )
+    short = sc.short_plan(robot, speed=math.radians(60), move_speed=math.radians(90))
     sweeps = [
         Sweep(s.joint, s.hold, max(s.lower, math.radians(-25)), math.radians(25), s.speed)
         for s in short.sweeps
