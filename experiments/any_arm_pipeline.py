@@ -71,7 +71,9 @@ def run_arm(model: str, where: Path, plan: str, duration: float) -> dict:
         )
         truth = json.loads((cal / "truth.json").read_text())
         jax_fit = json.loads((cal / "params.json").read_text())
-        fitted = np.array([s == "fit" for s in jax_fit["diagnostics"]["ratio_source"]])
+        fitted = np.array(
+            [e is not None and e < 0.05 for e in jax_fit["diagnostics"]["excitation"]]
+        )
         row["fitted"] = f"{int(fitted.sum())}/{fitted.size}"
         for method, file in (("jax", "params.json"), ("scipy", "params_scipy.json")):
             params = json.loads((cal / file).read_text())

@@ -19,7 +19,8 @@ from jaxcomp.recording import Recording
 
 #: Default bin width, rad (1 degree).
 BIN_WIDTH = np.deg2rad(1.0)
-#: A sample is steady when its swept-joint speed is at least this fraction of the sweep's.
+#: A sample is steady when its swept-joint speed is within (1 - STEADY_FRACTION) of its pass's
+#: speed, either side (ramps, overshoot and ringing stay out).
 STEADY_FRACTION = 0.98
 #: Steady samples closer than this (s) to the first or last of their pass are left out.
 STEADY_TRIM = 0.05
@@ -84,8 +85,10 @@ def steady(
 ) -> np.ndarray:
     """(N,) bool: the constant-speed samples of every sweep pass.
 
-    A sample is steady when its swept joint moves in the pass's direction at >= ``fraction``
-    of the pass speed (the median speed of every ``MEDIAN_STRIDE``-th sample of the pass) and
+    A sample is steady when its swept joint moves in the pass's direction at a speed within
+    (1 - ``fraction``) of the pass speed, either side (the pass speed: the mean speed of the
+    samples at >= ``fraction`` of the median speed of every ``MEDIAN_STRIDE``-th sample of the
+    pass; the median alone may fall on a ramp when a pass has few samples), and
     it lies more than ``trim`` s inside the first and last such sample (the servo still
     accelerates there).
     """
@@ -99,10 +102,11 @@ def steady(
     t = rec.t[swept]
     bounds = np.flatnonzero(np.diff(key)) + 1  # passes are contiguous runs of one key
     for part in np.split(np.arange(swept.size), bounds):
-        ref = np.median(speed[part[::MEDIAN_STRIDE]])
-        if ref <= 0:
+        median = np.median(speed[part[::MEDIAN_STRIDE]])
+        if median <= 0:
             continue
-        fast = part[speed[part] >= fraction * ref]
+        ref = speed[part][speed[part] >= fraction * median].mean()
+        fast = part[np.abs(speed[part] - ref) <= (1.0 - fraction) * ref]
         if fast.size == 0:
             continue
         inside = (t[fast] > t[fast[0]] + trim) & (t[fast] < t[fast[-1]] - trim)

@@ -31,8 +31,10 @@ from jaxcomp.robot_params import RobotParams, arm_joint_indices
 
 
 def random_poses(robot: Robot, count: int, seed: int = 0) -> np.ndarray:
-    """(count, n) rad: poses drawn uniformly within the current-controlled joints' limits."""
+    """(count, n) rad: poses drawn uniformly within the current-controlled joints' limits
+    (-pi .. pi for a continuous joint)."""
     lo, hi = robot.joint_limits[arm_joint_indices(robot)].T
+    lo, hi = np.maximum(lo, -np.pi), np.minimum(hi, np.pi)
     return np.random.default_rng(seed).uniform(lo, hi, (count, len(lo)))
 
 

@@ -5,41 +5,45 @@ steady pass of joint j in direction d at pass velocity v (rad/s) the measured cu
 
     c = r_j tau_j(q; delta) + l_j d + b_j v,      tau_j(q; delta) = tau0_j(q) + a_j(q) . delta
 
-where tau is the gravity torque the actuator holds (N m), r_j the current/torque ratio
-(A/(N m)), l_j the friction loss (A), b_j the viscous term (A s/rad) and delta the
-centre-of-mass offsets (m, each moving link's own frame) of every moving link. One
+where tau is the gravity torque the actuator holds (N m) at the sample's pose q (the held
+joints to first order about the sweep's mean pose: they give way under load), r_j > 0 the
+current/torque ratio (A/(N m)), l_j the friction loss (A), b_j the viscous term (A s/rad) and
+delta the centre-of-mass offsets (m, each moving link's own frame) of every moving link. One
 least-squares loss covers all joints, all sweeps and all recordings (which may differ in
-gravity and payload).
+gravity and payload), each joint with its own noise variance.
 
-Sweep moments make it exact and independent of the sample count: while joint j sweeps with
-the others held, tau0_j and every column of a_j are a sin(theta) + b cos(theta) + c in the
-swept angle, so each sweep's steady samples reduce to one 6 x 6 matrix of moments
-(``identify.moments``), the regressors are evaluated at three angles per sweep (``jax.grad``
-of the gravity model), and the loss reduces to per-joint sufficient statistics (``Stats``, a
-K + 3 square matrix per joint for K offset components): an iteration costs the same for 10^3
-or 10^6 samples.
+Sweep moments make it exact and independent of the sample count (``identify.moments``): each
+sweep's steady samples reduce to one small matrix; the regressors are evaluated at a few poses
+per sweep (``jax.grad`` of the gravity model) and the loss reduces to per-joint sufficient
+statistics (``Stats``, a K + 3 square matrix per joint for K offset components): an iteration
+costs the same for 10^3 or 10^6 samples.
 
-The solve (``solve``) is variable projection: r, l and b are linear given delta and are solved
-exactly inside; delta follows damped Newton steps on the reduced objective, started from three
-alternating least-squares rounds (the reduced objective is not convex); the noise variance is
-re-estimated from the residuals at every step. ``fit`` fits recordings jointly, ``fit_each``
-and ``fit_batch`` fit many recordings each on its own in vmapped batches on the default
-backend (a GPU when present).
+The solve (``solve``) is variable projection: for given ratios the model is linear in delta,
+l and b, which are solved exactly inside; log r follows damped Newton steps on the reduced
+objective, started from each joint's ratio from its nominal gravity torque alone. ``fit`` fits
+recordings jointly, ``fit_each`` and ``fit_batch`` fit many recordings each on its own in
+vmapped batches on the default backend (a GPU when present).
 
-What the data cannot determine is handled explicitly:
-- offsets: a Gaussian prior toward the nominal model, ``PRIOR_COM`` m per component; directions
-  no sweep excites (e.g. along a joint axis) stay at the nominal COM;
-- ratios: masses stay nominal, so r is the ratio relative to the nominal mass scale (a uniform
-  mass error shows as a ratio error, the gravity current the controller needs stays right); a
-  joint whose swept gravity torque stays below ``EXCITATION`` N m RMS (joint 0 of an upright
-  arm) gets the mean ratio of the excited joints of its actuator type (the paper's rule; the
-  nominal ratio when none is excited) through a tie of relative width ``TIE``; a weak prior of
-  relative width ``PRIOR_RATIO`` toward the nominal ratio keeps the problem well posed;
-- viscous terms: a prior of ``PRIOR_VISCOUS`` A s/rad; a joint swept at one speed only (pass
-  speeds within ``SPEED_SPREAD``) cannot tell b from l and has b held at 0.
-Standard errors come from the Gauss-Newton Hessian with the noise variance estimated from the
-residuals (Cramer-Rao bound); the singular values of the scaled Fisher information report the
-identifiability.
+Priors, each the same in any current unit and on any robot:
+- offsets: Gaussian toward the nominal model, per link ``com_prior`` m per axis (the model's
+  ``jaxcomp_com_prior``, else ``PRIOR_COM_FRACTION`` of the link's radius of gyration, at
+  least ``PRIOR_COM_MIN``; ``fit(com_prior=...)`` sets one for every link);
+- ratios: log r Gaussian (``PRIOR_LOG_RATIO``) around the data's ratio scale, the nominal
+  ratios' proportions scaled by the geometric mean of the excited joints' ratios; a joint the
+  data do not excite (its nominal gravity torque determines its ratio to worse than
+  ``EXCITED``) is tied (``TIE``) to the excited joints of its actuator type only where the
+  model declares types (``jaxcomp_actuator_types``), and keeps the data's scale otherwise;
+- viscous terms: ``PRIOR_VISCOUS`` x the joint's RMS current over its RMS pass speed; a joint
+  swept at one speed only (pass speeds within ``SPEED_SPREAD``) cannot tell b from l and has b
+  held at 0; friction losses: none to speak of.
+
+What the data determine, and what not: standard errors come from the Gauss-Newton Hessian
+with the priors (Cramer-Rao bound), and again with every prior relaxed 100-fold. A parameter
+whose error widens by ``DATA_DOMINATED`` or more is prior-dominated; a ratio is identified when
+the data determine it to ``RATIO_IDENTIFIED``. Upright in one mounting a ratio trades with the
+radial COM offsets of the links it carries (masses stay nominal): it is reported as confounded
+with the link's COM, and a recording with a known payload (or a second mounting) fitted
+jointly identifies it.
 
 Compiled code is shared by equal models: a ``FitModel`` compares equal by the content of the
 robot's compiled model (not its name or file), so an edited model never reuses stale code.
@@ -47,6 +51,7 @@ robot's compiled model (not its name or file), so an edited model never reuses s
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 import time
@@ -73,23 +78,37 @@ from jaxcomp.identify.moments import (
     pack,
     reduce_batch,
     sweep_moments,
+    z_index,
 )
 from jaxcomp.recording import Recording
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import RobotParams, arm_joint_indices, arm_joint_names
 
-#: Prior standard deviation of each COM offset component, m.
-PRIOR_COM = 0.02
-#: Prior relative standard deviation of each ratio around the nominal ratio.
-PRIOR_RATIO = 1.0
-#: Relative width of the tie of an unexcited joint's ratio to its actuator type's mean.
-TIE = 1e-4
-#: RMS swept gravity torque (N m) below which gravity does not excite a joint.
-EXCITATION = 0.05
-#: Prior standard deviation of the viscous friction, A s/rad (as current per joint speed).
-PRIOR_VISCOUS = 0.1
+#: Default prior standard deviation of each COM offset component, as a fraction of the link's
+#: radius of gyration about its COM (its size as the mass sees it), m/m; at least ``PRIOR_COM_MIN``.
+PRIOR_COM_FRACTION = 0.1
+#: Smallest default COM prior, m.
+PRIOR_COM_MIN = 0.002
+#: Prior standard deviation of log(ratio) around the data's ratio scale (the geometric mean of
+#: the well-excited joints' ratios relative to the nominal ones): a factor e either way.
+PRIOR_LOG_RATIO = 1.0
+#: A joint is excited when its swept nominal gravity torque alone determines its ratio to
+#: this relative standard error (the gravity signal against the current noise), 1.
+EXCITED = 0.05
+#: Width of the tie of an unexcited joint's log(ratio) to the mean of the excited joints of its
+#: actuator type (only where the model declares types: ``jaxcomp_actuator_types``).
+TIE = 0.05
+#: Prior standard deviation of each viscous term, as a fraction of the joint's RMS current over
+#: its RMS pass speed, (A s/rad) / (A s/rad).
+PRIOR_VISCOUS = 1.0
 #: Relative spread of pass speeds below which a joint counts as swept at one speed.
 SPEED_SPREAD = 0.1
+#: A parameter is determined by the data when relaxing every prior 100-fold widens its
+#: standard error by less than this factor.
+DATA_DOMINATED = 1.5
+#: A ratio is reported as identified when it is determined by the data and its relative
+#: standard error is at most this (so that its error stays within 1 % with ~3 sigma).
+RATIO_IDENTIFIED = 0.003
 #: Linear parameters per joint: ratio, friction, viscous.
 _LIN = 3
 #: Scales that make the parameters comparable for the identifiability report.
@@ -105,35 +124,43 @@ class Stats(NamedTuple):
 
     S (n, F, F) = sum phi phi^T, s (n, F) = sum phi c, c2 (n,) = sum c^2 (A^2) over the steady
     samples of each joint's sweeps, with phi = [tau0 (N m), reg (K, N), d, v (rad/s)] and c
-    the current (A); samples (n,); torque2 (n,) = sum tau0^2, N^2 m^2 (excitation).
+    the current (A); samples (n,).
     """
 
     S: jax.Array
     s: jax.Array
     c2: jax.Array
     samples: jax.Array
-    torque2: jax.Array
-
-    @property
-    def excitation(self) -> jax.Array:
-        """(n,) N m, RMS nominal gravity torque of each joint over its sweeps."""
-        return jnp.sqrt(self.torque2 / jnp.maximum(self.samples, 1.0))
 
     def __add__(self, other: Stats) -> Stats:  # type: ignore[override]
         return Stats(*(a + b for a, b in zip(self, other, strict=True)))
 
 
 class Solution(NamedTuple):
-    """Result of ``solve`` (device arrays; vmapped fits have a leading batch axis)."""
+    """Result of ``solve`` (device arrays; vmapped fits have a leading batch axis).
+
+    P = 3 n + K parameters [ratio, friction, viscous, com]. ``identified`` (P,): the data
+    determine the parameter (a ratio: also to ``RATIO_IDENTIFIED``); ``data_dominated`` (P,):
+    relaxing the priors 100-fold widens its standard error by less than ``DATA_DOMINATED``;
+    ``confounded`` (n,): an excited joint whose ratio rests on the COM prior, and
+    ``confounded_link`` (n,) the fitted link (index into ``FitModel.links``) most correlated
+    with it; ``excitation`` (n,): relative standard error of each ratio from the nominal
+    gravity torque alone (inf: no signal).
+    """
 
     ratio: jax.Array  # (n,) A/(N m)
     friction: jax.Array  # (n,) A, signed (the params file stores |l|)
     viscous: jax.Array  # (n,) A s/rad
     com: jax.Array  # (K,) m
-    cov: jax.Array  # (P, P) covariance of [ratio, friction, viscous, com], P = 3 n + K
-    sigma: jax.Array  # A, noise standard deviation estimated from the residuals
+    cov: jax.Array  # (P, P) covariance of [ratio, friction, viscous, com]
+    sigma: jax.Array  # (n,) A, noise standard deviation of each joint from the residuals
     singular: jax.Array  # (P,) singular values of the scaled Fisher information
     excited: jax.Array  # (n,) bool
+    excitation: jax.Array  # (n,)
+    identified: jax.Array  # (P,) bool
+    data_dominated: jax.Array  # (P,) bool
+    confounded: jax.Array  # (n,) bool
+    confounded_link: jax.Array  # (n,) int
     iterations: jax.Array
     converged: jax.Array
     rss: jax.Array  # residual sum of squares over the steady samples, A^2
@@ -142,20 +169,22 @@ class Solution(NamedTuple):
 @dataclass(frozen=True, eq=False)
 class FitModel:
     """What a fit needs of the robot: its current-controlled joints, the moving links whose
-    COM offsets are fitted, the nominal ratios and the actuator types.
+    COM offsets are fitted, the nominal ratios, the actuator types and the COM prior.
 
     Made once per robot and kept on it (``fit_model``). It is the static argument of the
     jitted fit functions; two ``FitModel`` compare equal (and hash alike) when their robots'
-    compiled models have the same content and they fit the same joints and links, so equal
-    models share compiled code and an edited model gets its own.
+    compiled models have the same content and they fit the same joints and links with the same
+    prior, so equal models share compiled code and an edited model gets its own.
 
     Attributes:
         robot: the robot model.
         joints: (n,) indices of the current-controlled joints among the robot's joints.
         links: names of the L links whose COM offset is fitted (K = 3 L components).
         link_ids: (L,) their indices among the robot's links.
-        ratio0: (n,) A/(N m), the nominal current/torque ratios.
-        types: actuator type label of each joint (ratio ties between unexcited joints).
+        ratio0: (n,) A/(N m), the nominal current/torque ratios (only their proportions
+            matter: the fit scales them to the data).
+        types: the actuator type of each joint when the model declares them, else None.
+        com_prior: (L,) m, prior standard deviation of each link's COM offset per axis.
     """
 
     robot: Robot
@@ -163,7 +192,8 @@ class FitModel:
     links: tuple[str, ...]
     link_ids: np.ndarray
     ratio0: np.ndarray
-    types: tuple[str, ...]
+    types: tuple[str, ...] | None
+    com_prior: np.ndarray
 
     @cached_property
     def _identity(self) -> tuple:
@@ -174,6 +204,7 @@ class FitModel:
             tuple(int(i) for i in self.link_ids),
             tuple(float(r) for r in self.ratio0),
             self.types,
+            tuple(float(c) for c in self.com_prior),
         )
 
     def __eq__(self, other: object) -> bool:
@@ -197,11 +228,39 @@ class FitModel:
         names += [f"com_offset[{link}].{ax}" for link in self.links for ax in "xyz"]
         return names
 
+    def with_com_prior(self, length: float | None) -> FitModel:
+        """This model with a COM prior of ``length`` m on every link (None: unchanged)."""
+        if length is None:
+            return self
+        length = float(length)
+        if not (np.isfinite(length) and length > 0):
+            raise InputError(f"the COM prior must be a length > 0 m, got {length}")
+        return dataclasses.replace(self, com_prior=np.full(len(self.links), length))
 
-def fit_model(robot: Robot | str) -> FitModel:
-    """The ``FitModel`` of a robot (name, path or ``Robot``), kept on the robot."""
+
+def fit_model(robot: Robot | str, com_prior: float | None = None) -> FitModel:
+    """The ``FitModel`` of a robot (name, path or ``Robot``), kept on the robot; ``com_prior``
+    m overrides the model's COM prior (``default_com_prior``) on every link."""
     robot = load_robot(robot)
-    return robot.cached(("jax_fit.FitModel",), lambda: _build_model(robot))
+    model = robot.cached(("jax_fit.FitModel",), lambda: _build_model(robot))
+    return model.with_com_prior(com_prior)
+
+
+def default_com_prior(robot: Robot, link_ids: np.ndarray) -> np.ndarray:
+    """(L,) m: the COM prior of each link: the model's ``jaxcomp_com_prior`` (m, one value)
+    when it declares one, else ``PRIOR_COM_FRACTION`` of the link's radius of gyration about
+    its COM, sqrt(trace(I) / 2 m), and at least ``PRIOR_COM_MIN``."""
+    declared = robot.custom_numeric("jaxcomp_com_prior")
+    if declared is not None:
+        value = float(np.asarray(declared).ravel()[0])
+        if not (np.isfinite(value) and value > 0):
+            raise InputError(f"{robot.name}: jaxcomp_com_prior must be a length > 0 m, got {value}")
+        return np.full(len(link_ids), value)
+    p = robot.nominal_params()
+    mass = np.asarray(p.mass)[link_ids]
+    trace = np.trace(np.asarray(p.inertia)[link_ids], axis1=-2, axis2=-1)
+    gyration = np.sqrt(np.maximum(trace, 0.0) / (2.0 * np.maximum(mass, 1e-12)))
+    return np.maximum(PRIOR_COM_FRACTION * gyration, PRIOR_COM_MIN)
 
 
 def _build_model(robot: Robot) -> FitModel:
@@ -210,8 +269,8 @@ def _build_model(robot: Robot) -> FitModel:
     moved = np.asarray(tree.moves)[joints].any(axis=0)
     mass = np.asarray(robot.nominal_params().mass)
     ids = np.flatnonzero(moved & (mass > 0))
-    types = robot.actuator_types or tuple(f"joint{j}" for j in range(len(joints)))
-    if len(types) != len(joints):
+    types = robot.actuator_types
+    if types is not None and len(types) != len(joints):
         raise InputError(
             f"{robot.name}: jaxcomp_actuator_types lists {len(types)} types for "
             f"{len(joints)} joints"
@@ -222,14 +281,16 @@ def _build_model(robot: Robot) -> FitModel:
         links=tuple(tree.body_names[i] for i in ids),
         link_ids=ids,
         ratio0=RobotParams.nominal(robot).ratio,
-        types=tuple(types),
+        types=None if types is None else tuple(types),
+        com_prior=default_com_prior(robot, ids),
     )
 
 
 @partial(jax.jit, static_argnums=0)
 def _regressors(model: FitModel, q, swept, gravity, payload_mass, payload_com):
-    """tau0 (B,) N m and d tau0 / d delta (B, K) N of the swept joint ``swept`` (B,) at each
-    arm pose ``q`` (B, n) rad, under ``gravity`` (3,) m/s^2 with the recording's payload."""
+    """[tau0 (N m), d tau0 / d delta (K, N)] (B, 1 + K) of the swept joint ``swept`` (B,) at
+    each arm pose ``q`` (B, n) rad, under ``gravity`` (3,) m/s^2 with the recording's
+    payload."""
     robot = model.robot
     tree = robot.tree
     nominal = robot.nominal_params()
@@ -244,49 +305,72 @@ def _regressors(model: FitModel, q, swept, gravity, payload_mass, payload_com):
     delta0 = jnp.zeros(model.K)
 
     def one(qa, j):
-        return tau(delta0, qa, j), jax.grad(tau)(delta0, qa, j)
+        return jnp.concatenate([tau(delta0, qa, j)[None], jax.grad(tau)(delta0, qa, j)])
 
     return jax.vmap(one)(q, swept)
 
 
+#: Angles (rad) at which a degree-one trigonometric polynomial a sin + b cos + c is sampled.
 _ANGLES = (0.0, 0.5 * np.pi, np.pi)
+
+
+def _trig(f0, f90, f180):
+    """(a, b, c) of f(x) = a sin x + b cos x + c from f at 0, pi/2 and pi."""
+    c = 0.5 * (f0 + f180)
+    return f90 - c, 0.5 * (f0 - f180), c
 
 
 @partial(jax.jit, static_argnums=0)
 def _sweep_stats(model: FitModel, m: SweepMoments) -> tuple[Stats, jax.Array]:
     """Sufficient statistics of one recording's sweeps, and each sweep's torque coefficients.
 
-    The swept joint's tau0 and regressor are evaluated at three angles per sweep and written
-    as a sin + b cos + c; the coefficients (S, 1 + K, 3) map the moments onto the features.
+    The swept joint's tau0 and regressor and their held-angle derivatives are evaluated at
+    three angles per sweep and written as a sin + b cos + c: the coefficients (S, 1 + K, 3,
+    n + 1) map the moments of z onto the features (``identify.moments``). Returned: the
+    statistics and the coefficients at the held pose (S, 1 + K, 3): a, b, c.
     """
-    S = m.joint.shape[0]
-    angles = jnp.asarray(_ANGLES)
-    poses = jnp.repeat(m.hold[:, None, :], 3, axis=1)
-    poses = poses.at[jnp.arange(S)[:, None], jnp.arange(3)[None, :], m.joint[:, None]].set(
-        angles[None, :]
-    )
-    joint3 = jnp.repeat(m.joint, 3)
-    t0, reg = _regressors(
-        model, poses.reshape(-1, model.n), joint3, m.gravity, m.payload_mass, m.payload_com
-    )
-    vals = jnp.concatenate([t0[:, None], reg], axis=1).reshape(S, 3, 1 + model.K)
-    at0, at90, at180 = vals[:, 0], vals[:, 1], vals[:, 2]
-    c = 0.5 * (at0 + at180)
-    coef = jnp.stack([at90 - c, 0.5 * (at0 - at180), c], axis=2)  # (S, 1 + K, 3): a, b, c
-    F = model.K + 3
-    L = jnp.zeros((S, F, 5))
-    L = L.at[:, : F - 2, :3].set(coef).at[:, F - 2, 3].set(1.0).at[:, F - 1, 4].set(1.0)
-    onehot = jax.nn.one_hot(m.joint, model.n, dtype=float)  # (S, n)
-    per_S = jnp.einsum("sfa,sab,sgb->sfg", L, m.moments[:, :5, :5], L)
-    per_s = jnp.einsum("sfa,sa->sf", L, m.moments[:, :5, 5])
+    S, n = m.joint.shape[0], model.n
+    # every value is a degree-one trigonometric polynomial in each joint angle alone (rotating
+    # one joint turns a rigid subtree, or the whole tree about the swept axis): sampled at the
+    # swept angles 0, pi/2, pi, and with each held joint moved by 0, pi/2, pi from its hold,
+    # the samples give the coefficients in the swept angle and the derivatives in each held
+    # angle exactly
+    shift = jnp.concatenate([jnp.zeros((1, n)), jnp.repeat(jnp.eye(n), 2, axis=0)])
+    shift = shift * jnp.concatenate([jnp.zeros(1), jnp.tile(jnp.asarray(_ANGLES[1:]), n)])[:, None]
+    poses = m.hold[:, None, None, :] + shift[None, None, :, :]  # (S, 3, 1 + 2n, n)
+    swept = jax.nn.one_hot(m.joint, n, dtype=float)[:, None, None, :]
+    poses = poses * (1.0 - swept) + jnp.asarray(_ANGLES)[None, :, None, None] * swept
+    V = _regressors(
+        model,
+        poses.reshape(-1, n),
+        jnp.repeat(m.joint, 3 * (1 + 2 * n)),
+        m.gravity,
+        m.payload_mass,
+        m.payload_com,
+    ).reshape(S, 3, 1 + 2 * n, 1 + model.K)
+    base = V[:, :, 0]  # (S, 3, 1 + K)
+    moved = V[:, :, 1:].reshape(S, 3, n, 2, 1 + model.K)
+    slope, _, _ = _trig(base[:, :, None], moved[:, :, :, 0], moved[:, :, :, 1])  # (S, 3, n, 1 + K)
+    slope = slope * (1.0 - swept[:, 0, :, :, None])  # the swept joint's entry is 0
+    U = jnp.concatenate([base[:, :, None], slope], axis=2)  # (S, 3, n + 1, 1 + K)
+    C = jnp.stack(_trig(U[:, 0], U[:, 1], U[:, 2]), axis=1)  # (S, 3, n + 1, 1 + K)
+    C = jnp.moveaxis(C, -1, 1)  # (S, 1 + K, 3, n + 1)
+    F, Z = model.K + 3, 3 * (n + 1)
+    L = jnp.zeros((S, F, Z + 2))
+    L = L.at[:, : F - 2, :Z].set(C.reshape(S, F - 2, Z))
+    L = L.at[:, F - 2, Z].set(1.0).at[:, F - 1, Z + 1].set(1.0)
+    onehot = jax.nn.one_hot(m.joint, n, dtype=float)  # (S, n)
+    M = m.moments
+    per_S = jnp.einsum("sfa,sab,sgb->sfg", L, M[:, : Z + 2, : Z + 2], L)
+    per_s = jnp.einsum("sfa,sa->sf", L, M[:, : Z + 2, Z + 2])
+    one = z_index(2, 0, n)
     st = Stats(
         S=jnp.einsum("sj,sfg->jfg", onehot, per_S),
         s=jnp.einsum("sj,sf->jf", onehot, per_s),
-        c2=onehot.T @ m.moments[:, 5, 5],
-        samples=onehot.T @ m.moments[:, 2, 2],
-        torque2=onehot.T @ per_S[:, 0, 0],
+        c2=onehot.T @ M[:, Z + 2, Z + 2],
+        samples=onehot.T @ M[:, one, one],
     )
-    return st, coef
+    return st, C[..., 0]
 
 
 def _beta(theta: jax.Array, n: int, K: int) -> jax.Array:
@@ -303,173 +387,265 @@ def _beta(theta: jax.Array, n: int, K: int) -> jax.Array:
 
 
 def _rss(theta, st: Stats, n: int, K: int) -> jax.Array:
+    """(n,) A^2: residual sum of squares of each joint's steady samples."""
     b = _beta(theta, n, K)
-    return jnp.sum(
-        st.c2 - 2 * jnp.einsum("jf,jf->j", b, st.s) + jnp.einsum("jf,jfg,jg->j", b, st.S, b)
-    )
+    return st.c2 - 2 * jnp.einsum("jf,jf->j", b, st.s) + jnp.einsum("jf,jfg,jg->j", b, st.S, b)
 
 
 class _Priors(NamedTuple):
-    """Quadratic priors: ratio precision (n,) and mean (n,), tie rows (n, n) and weights
-    (n,), viscous precision (n,)."""
+    """Quadratic priors: on log(ratio) mean ``centre`` (n,) and precision ``ratio`` (n,), tie
+    rows ``tie`` (n, n) with weights ``tie_w`` (n,); precisions of friction (n,) A^-2,
+    viscous (n,) (A s/rad)^-2 and COM offsets (K,) m^-2; ``held`` (n,): viscous held at 0
+    (one speed)."""
 
-    prec: jax.Array
-    mean: jax.Array
+    centre: jax.Array
+    ratio: jax.Array
     tie: jax.Array
     tie_w: jax.Array
+    friction: jax.Array
     viscous: jax.Array
+    com: jax.Array
+    held: jax.Array
 
 
-def _priors(st: Stats, ratio0: jax.Array, types: tuple[str, ...]) -> tuple[_Priors, jax.Array]:
-    n = ratio0.shape[0]
-    excited = st.excitation > EXCITATION
-    same = jnp.asarray([[types[i] == types[k] for k in range(n)] for i in range(n)], float)
-    donors = same * excited[None, :]
-    has = donors.sum(1) > 0
-    mean_of = donors / jnp.maximum(donors.sum(1, keepdims=True), 1.0)
-    tie = (~excited)[:, None] * (jnp.eye(n) - mean_of)
-    tie_w = jnp.where(has & ~excited, 1.0 / (TIE * ratio0) ** 2, 0.0)
-    width = jnp.where(excited | has, PRIOR_RATIO, TIE)  # no donor: stay at the nominal ratio
+def _prefit(st: Stats, K: int) -> tuple[jax.Array, jax.Array]:
+    """Each joint's ratio (n,) from its nominal gravity torque alone (COM offsets 0, current
+    = r tau0 + l d), and its relative standard error (n,; inf without a gravity signal)."""
+    idx = jnp.asarray([0, K + 1])
+    A = st.S[:, idx][:, :, idx]
+    y = st.s[:, idx]
+    tiny = 1e-12 * jnp.trace(A, axis1=1, axis2=2)[:, None, None] + 1e-300
+    A = A + tiny * jnp.eye(2)
+    x = jnp.linalg.solve(A, y[..., None])[..., 0]
+    rss = st.c2 - 2 * jnp.sum(x * y, 1) + jnp.einsum("ja,jab,jb->j", x, A, x)
+    s2 = jnp.maximum(rss, 0.0) / jnp.maximum(st.samples - 2, 1.0)
+    var = s2 * jnp.linalg.inv(A)[:, 0, 0]
+    r = x[:, 0]
+    rel = jnp.sqrt(var) / jnp.abs(r)
+    rel = jnp.where((st.samples > 2) & (r > 0) & jnp.isfinite(rel), rel, jnp.inf)
+    return r, rel
+
+
+def _priors(st: Stats, key: tuple) -> tuple[_Priors, jax.Array, jax.Array, jax.Array]:
+    """The priors, scaled to the data (every one means the same in A or mA), each joint's
+    excitation (``_prefit``'s relative standard error), excited flags and current scale (A)."""
+    n, K, ratio0, types, com_prior = key
+    ratio0 = jnp.asarray(ratio0)
+    r_hat, rel = _prefit(st, K)
+    excited = rel < EXCITED
+    logs = jnp.log(jnp.maximum(r_hat, 1e-300) / ratio0)
+    positive = r_hat > 0
+    use = jnp.where(jnp.any(excited), excited, positive)
+    scale = jnp.where(jnp.any(use), jnp.sum(use * logs) / jnp.maximum(jnp.sum(use), 1), 0.0)
+    centre = jnp.log(ratio0) + scale
+    if types is None:
+        tie, tie_w = jnp.zeros((n, n)), jnp.zeros(n)
+    else:
+        same = jnp.asarray([[types[i] == types[k] for k in range(n)] for i in range(n)], float)
+        donors = same * excited[None, :]
+        has = (donors.sum(1) > 0) & ~excited
+        mean_of = donors / jnp.maximum(donors.sum(1, keepdims=True), 1.0)
+        tie = has[:, None] * (jnp.eye(n) - mean_of)
+        tie_w = jnp.where(has, 1.0 / TIE**2, 0.0)
+    # current and speed scales of each joint (the whole recording's for an unswept joint)
+    total = jnp.sqrt(jnp.sum(st.c2) / jnp.maximum(jnp.sum(st.samples), 1.0)) + 1e-300
+    cs = jnp.where(st.samples > 0, jnp.sqrt(st.c2 / jnp.maximum(st.samples, 1.0)), total)
+    cs = jnp.maximum(cs, 1e-9 * total)
+    vv, vd, dd = st.S[:, -1, -1], st.S[:, -1, -2], st.S[:, -2, -2]
+    vs = jnp.sqrt(vv / jnp.maximum(st.samples, 1.0))
+    width = PRIOR_VISCOUS * cs / jnp.where(vs > 0, vs, 1.0)
     # viscous friction needs passes at different speeds: with one speed (v = speed d) it is
     # indistinguishable from the friction loss and is held at 0
-    vv, vd, dd = st.S[:, -1, -1], st.S[:, -1, -2], st.S[:, -2, -2]
-    one_speed = vd**2 >= (1.0 - SPEED_SPREAD**2) * vv * dd
-    viscous = jnp.where(one_speed, 1.0 / (1e-6 * PRIOR_VISCOUS) ** 2, 1.0 / PRIOR_VISCOUS**2)
-    return _Priors(1.0 / (width * ratio0) ** 2, ratio0, tie, tie_w, viscous), excited
-
-
-def _inner(delta, st: Stats, pr: _Priors, sigma2):
-    """Best linear parameters x = [r, l, b] (3n,) for fixed offsets ``delta``, and the
-    objective 0.5 RSS / sigma2 + 0.5 (priors) there."""
-    n = st.c2.shape[0]
-    K = delta.shape[0]
-    # beta_j = r_j [1, delta, 0, 0] + l_j [0, .., 1, 0] + b_j [0, .., 0, 1]
-    E = jnp.zeros((K + 3, _LIN)).at[0, 0].set(1.0).at[1 : K + 1, 0].set(delta)
-    E = E.at[K + 1, 1].set(1.0).at[K + 2, 2].set(1.0)
-    M = jnp.einsum("fa,jfg,gb->jab", E, st.S, E)  # (n, 3, 3)
-    v = jnp.einsum("fa,jf->aj", E, st.s).reshape(-1)  # (3n,) ordered [r.., l.., b..]
-    A = jnp.einsum("iab,ik->aibk", M, jnp.eye(n)).reshape(_LIN * n, _LIN * n) / sigma2
-    A = A + jnp.diag(jnp.concatenate([pr.prec, jnp.full(n, 1e-12), pr.viscous]))
-    A = A.at[:n, :n].add(pr.tie.T @ (pr.tie_w[:, None] * pr.tie))
-    rhs = v / sigma2
-    rhs = rhs.at[:n].add(pr.prec * pr.mean)
-    x = jnp.linalg.solve(A, rhs)
-    value = (
-        0.5 * (jnp.sum(st.c2) / sigma2 - x @ rhs)
-        + 0.5 * jnp.sum(pr.prec * pr.mean**2)
-        + 0.5 * jnp.sum(delta**2) / PRIOR_COM**2
+    held = (vd**2 >= (1.0 - SPEED_SPREAD**2) * vv * dd) | (st.samples == 0)
+    viscous = jnp.where(held, 1.0 / (1e-6 * width) ** 2, 1.0 / width**2)
+    pr = _Priors(
+        centre=centre,
+        ratio=jnp.full(n, 1.0 / PRIOR_LOG_RATIO**2),
+        tie=tie,
+        tie_w=tie_w,
+        friction=1.0 / (1e3 * cs) ** 2,
+        viscous=viscous,
+        com=jnp.repeat(1.0 / jnp.asarray(com_prior) ** 2, 3),
+        held=held,
     )
-    return x, value
+    return pr, rel, excited, cs
 
 
-def _theta(delta, st, pr, sigma2):
-    x, _ = _inner(delta, st, pr, sigma2)
-    return jnp.concatenate([x, delta])
+def _design(n: int, K: int) -> tuple[jax.Array, jax.Array]:
+    """Constant parts of beta_j = r_j e0 + (A0_j + r_j Ad_j) z, z = [delta (K), l (n), b (n)]:
+    A0, Ad (n, F, K + 2 n)."""
+    F, P = K + 3, K + 2 * n
+    j = jnp.arange(n)
+    A0 = jnp.zeros((n, F, P)).at[j, F - 2, K + j].set(1.0).at[j, F - 1, K + n + j].set(1.0)
+    k = jnp.arange(K)
+    Ad = jnp.zeros((n, F, P)).at[:, 1 + k, k].set(1.0)
+    return A0, Ad
+
+
+def _log_prior(rho: jax.Array, pr: _Priors) -> jax.Array:
+    tied = pr.tie @ rho
+    return 0.5 * jnp.sum(pr.ratio * (rho - pr.centre) ** 2) + 0.5 * jnp.sum(pr.tie_w * tied**2)
+
+
+def _inner(r: jax.Array, st: Stats, pr: _Priors, s2: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """For fixed ratios ``r`` (n,) and noise variances ``s2`` (n,) A^2: the best
+    z = [delta, l, b] (exact: the model is linear in them) and the data-and-prior objective
+    0.5 sum_j RSS_j / s2_j + 0.5 z' Lambda z there."""
+    n, F = st.c2.shape[0], st.S.shape[-1]
+    K = F - 3
+    A0, Ad = _design(n, K)
+    A = A0 + r[:, None, None] * Ad
+    W = st.S / s2[:, None, None]
+    H = jnp.einsum("jfp,jfg,jgq->pq", A, W, A)
+    H = H + jnp.diag(jnp.concatenate([pr.com, pr.friction, pr.viscous]))
+    g = jnp.einsum("jfp,jf->p", A, W[:, :, 0] * r[:, None] - st.s / s2[:, None])
+    d = jnp.sqrt(jnp.diag(H))
+    z = -jnp.linalg.solve(H / d[:, None] / d[None, :], g / d) / d
+    const = jnp.sum((st.c2 - 2 * r * st.s[:, 0] + r**2 * st.S[:, 0, 0]) / s2)
+    return z, 0.5 * (const + g @ z)
+
+
+def _theta(r: jax.Array, z: jax.Array, n: int, K: int) -> jax.Array:
+    """[ratio, friction, viscous, com] from r and z = [delta, l, b]."""
+    return jnp.concatenate([r, z[K : K + n], z[K + n :], z[:K]])
+
+
+def _inverse(H: jax.Array) -> jax.Array:
+    """Inverse of a symmetric positive definite matrix, Jacobi-scaled for its conditioning."""
+    d = jnp.sqrt(jnp.maximum(jnp.diag(H), 1e-300))
+    return jnp.linalg.inv(H / d[:, None] / d[None, :]) / d[:, None] / d[None, :]
 
 
 @partial(jax.jit, static_argnums=0)
 def solve(model_key: tuple, st: Stats, max_iter: int = 50) -> Solution:
     """The joint fit on sufficient statistics (pure given the statics; vmap-able).
 
-    Variable projection: ratio, friction and viscous terms are linear given the offsets, so
-    they are solved exactly inside; the offsets follow damped Newton steps on the reduced
-    objective (the ratio-versus-mass-scale valley of the full problem is flat there, not
-    curved), started from three alternating least-squares rounds. The noise variance is
-    re-estimated from the residuals at every step. ``model_key`` = (n, K, nominal ratios,
-    actuator types), the static description of the model.
+    Variable projection: for given ratios the model is linear in COM offsets, friction and
+    viscous terms, which are solved exactly inside; the ratios follow damped Newton steps in
+    log(ratio) (so they stay > 0), started from each joint's ratio from its nominal gravity
+    torque alone. Each joint's noise variance is re-estimated from its residuals at every
+    step. ``model_key`` = (n, K, nominal ratios, actuator types or None, COM prior per link),
+    the static description of the model (``_key``).
     """
-    n, K, ratio0, types = model_key
-    ratio0 = jnp.asarray(ratio0)
+    n, K = model_key[0], model_key[1]
     P = _LIN * n + K
-    pr, excited = _priors(st, ratio0, types)
-    dof = jnp.maximum(jnp.sum(st.samples) - P, 1.0)
+    pr, rel, excited, cs = _priors(st, model_key)
+    dof = jnp.maximum(st.samples - _LIN, 1.0)
+    floor = (1e-12 * cs) ** 2
 
-    def rss(delta, sigma2):
-        return _rss(_theta(delta, st, pr, sigma2), st, n, K)
+    def value(rho, s2):
+        return _inner(jnp.exp(rho), st, pr, s2)[1] + _log_prior(rho, pr)
 
-    def value(delta, sigma2):
-        return _inner(delta, st, pr, sigma2)[1]
+    def full(x, s2):
+        # the objective in x = [log r, z] (before z is projected out)
+        rho, z = x[:n], x[n:]
+        rss = _rss(_theta(jnp.exp(rho), z, n, K), st, n, K)
+        lam = jnp.concatenate([pr.com, pr.friction, pr.viscous])
+        return 0.5 * jnp.sum(rss / s2) + 0.5 * jnp.sum(lam * z**2) + _log_prior(rho, pr)
 
-    grad = jax.grad(value)
-    hess = jax.hessian(value)
+    def variances(rho, s2):
+        r = jnp.exp(rho)
+        z, _ = _inner(r, st, pr, s2)
+        rss = _rss(_theta(r, z, n, K), st, n, K)
+        return jnp.where(st.samples > 0, jnp.maximum(rss / dof, floor), 1.0)
+
+    def derivatives(rho, s2):
+        # gradient and Hessian of the projected objective: at the inner optimum the gradient
+        # is the full one's in log r, the Hessian the Schur complement of the full Hessian's
+        z, _ = _inner(jnp.exp(rho), st, pr, s2)
+        x = jnp.concatenate([rho, z])
+        G, H = jax.grad(full)(x, s2), jax.hessian(full)(x, s2)
+        Hzz = H[n:, n:]
+        d = jnp.sqrt(jnp.maximum(jnp.diag(Hzz), 1e-300))
+        X = jnp.linalg.solve(Hzz / d[:, None] / d[None, :], H[n:, :n] / d[:, None]) / d[:, None]
+        return G[:n], H[:n, :n] - H[:n, n:] @ X
 
     def step(carry):
-        delta, lam, it, done, sigma2 = carry
-        g, H = grad(delta, sigma2), hess(delta, sigma2)
+        rho, lam, it, done, s2 = carry
+        g, H = derivatives(rho, s2)
         H = 0.5 * (H + H.T)
-        cand = delta - jnp.linalg.solve(
-            H + lam * jnp.diag(jnp.abs(jnp.diag(H))) + 1e-9 * jnp.eye(K), g
-        )
-        f, fc = value(delta, sigma2), value(cand, sigma2)
+        damp = lam * jnp.diag(jnp.abs(jnp.diag(H))) + 1e-12 * jnp.eye(n)
+        cand = rho - jnp.linalg.solve(H + damp, g)
+        f, fc = value(rho, s2), value(cand, s2)
         better = fc <= f
-        new = jnp.where(better, cand, delta)
-        # converged: the step moves no COM by a nanometre, or changes the objective only at
+        new = jnp.where(better, cand, rho)
+        # converged: the step changes no ratio by 1e-10 (relative), or the objective only at
         # the level of rounding
-        done = (jnp.max(jnp.abs(cand - delta)) < 1e-9) | (jnp.abs(fc - f) <= 1e-13 * jnp.abs(f))
+        done = (jnp.max(jnp.abs(cand - rho)) < 1e-10) | (jnp.abs(fc - f) <= 1e-12 * jnp.abs(f))
         lam = jnp.where(better, lam * 0.1, lam * 10.0)
-        return new, lam, it + 1, done, jnp.maximum(rss(new, sigma2) / dof, 1e-12)
+        return new, lam, it + 1, done, variances(new, s2)
 
     def cont(carry):
-        return (~carry[3]) & (carry[2] < max_iter) & (carry[1] < 1e10)
+        return (~carry[3]) & (carry[2] < max_iter) & (carry[1] < 1e12)
 
-    def offsets_given_ratio(r, sigma2):
-        # for fixed ratios the objective is quadratic in z = [l, b, delta]: one Newton step
-        def objective(z):
-            theta = jnp.concatenate([r, z])
-            return 0.5 * _rss(theta, st, n, K) / sigma2 + 0.5 * (
-                jnp.sum(pr.viscous * z[n : 2 * n] ** 2) + jnp.sum(z[2 * n :] ** 2) / PRIOR_COM**2
-            )
+    r_hat, _ = _prefit(st, K)
+    rho0 = jnp.where(excited, jnp.log(jnp.maximum(r_hat, 1e-300)), pr.centre)
+    s2_0 = variances(rho0, jnp.where(st.samples > 0, cs**2, 1.0))
+    init = (rho0, jnp.asarray(1e-3), jnp.asarray(0), jnp.asarray(False), s2_0)
+    rho, lam, it, done, s2 = jax.lax.while_loop(cont, step, init)
+    r = jnp.exp(rho)
+    z, _ = _inner(r, st, pr, s2)
+    theta = _theta(r, z, n, K)
 
-        z0 = jnp.zeros(2 * n + K)
-        H = jax.hessian(objective)(z0) + 1e-12 * jnp.eye(2 * n + K)
-        return -jnp.linalg.solve(H, jax.grad(objective)(z0))[2 * n :]
-
-    def alternate(_, delta):
-        sigma2 = jnp.maximum(rss(delta, 1.0) / dof, 1e-12)
-        r = _inner(delta, st, pr, sigma2)[0][:n]
-        return offsets_given_ratio(r, sigma2)
-
-    # start the Newton iteration from a few alternating (ratio | offsets) least-squares
-    # rounds: the reduced objective is not convex, and from the nominal COM it may otherwise
-    # end in a local minimum
-    delta0 = jax.lax.fori_loop(0, 3, alternate, jnp.zeros(K))
-    sigma2_0 = jnp.maximum(rss(delta0, 1.0) / dof, 1e-12)
-    init = (delta0, jnp.asarray(1e-4), jnp.asarray(0), jnp.asarray(False), sigma2_0)
-    delta, lam, it, done, sigma2 = jax.lax.while_loop(cont, step, init)
-    theta = _theta(delta, st, pr, sigma2)
-
-    # Fisher information of [r, l, delta] (Gauss-Newton Hessian) plus the priors
+    # Fisher information of theta (Gauss-Newton) plus the priors; and with the priors relaxed
+    # 100-fold (what the data alone determine)
     Bj = jax.jacfwd(lambda th: _beta(th, n, K))(theta)  # (n, F, P)
-    H_data = jnp.einsum("jfp,jfg,jgq->pq", Bj, st.S, Bj) / sigma2
-    H_prior = jnp.zeros((P, P))
-    H_prior = H_prior.at[:n, :n].add(jnp.diag(pr.prec) + pr.tie.T @ (pr.tie_w[:, None] * pr.tie))
-    H_prior = H_prior.at[2 * n : 3 * n, 2 * n : 3 * n].add(jnp.diag(pr.viscous))
-    H_prior = H_prior.at[3 * n :, 3 * n :].add(jnp.eye(K) / PRIOR_COM**2)
-    H_prior = H_prior.at[n : 2 * n, n : 2 * n].add(jnp.eye(n) * 1e-12)
-    cov = jnp.linalg.inv(H_data + H_prior)
-    scale = jnp.concatenate([ratio0, jnp.full(n, 0.1), jnp.full(n, 0.01), jnp.full(K, _COM_SCALE)])
+    H_data = jnp.einsum("jfp,jfg,jgq->pq", Bj, st.S / s2[:, None, None], Bj)
+
+    def prior(relax):
+        soft = jnp.where(pr.held, pr.viscous, pr.viscous * relax)
+        H = jnp.zeros((P, P))
+        ratio = jnp.diag(pr.ratio * relax) + pr.tie.T @ (pr.tie_w[:, None] * pr.tie)
+        H = H.at[:n, :n].add(ratio / r[:, None] / r[None, :])  # d log r = dr / r
+        H = H.at[n : 2 * n, n : 2 * n].add(jnp.diag(pr.friction))
+        H = H.at[2 * n : 3 * n, 2 * n : 3 * n].add(jnp.diag(soft))
+        return H.at[3 * n :, 3 * n :].add(jnp.diag(pr.com * relax))
+
+    cov = _inverse(H_data + prior(1.0))
+    wide = _inverse(H_data + prior(1e-4))
+    var, var_wide = jnp.diag(cov), jnp.diag(wide)
+    dominated = var_wide <= DATA_DOMINATED**2 * var
+    std_ratio = jnp.sqrt(jnp.maximum(var[:n], 0.0))
+    ratio_ok = dominated[:n] & excited & (std_ratio <= RATIO_IDENTIFIED * r)
+    ident = dominated.at[:n].set(ratio_ok)
+    ident = ident.at[n : 2 * n].set(dominated[n : 2 * n] & (st.samples > 0))
+    ident = ident.at[2 * n : 3 * n].set(dominated[2 * n : 3 * n] & ~pr.held)
+    norm = jnp.sqrt(jnp.maximum(var_wide[:n, None] * var_wide[None, 3 * n :], 1e-300))
+    corr = wide[:n, 3 * n :] / norm
+    link = jnp.argmax(jnp.abs(corr).reshape(n, -1, 3).max(axis=2), axis=1)
+    vs = jnp.sqrt(st.S[:, -1, -1] / jnp.maximum(st.samples, 1.0))
+    scale = jnp.concatenate([r, cs, cs / jnp.where(vs > 0, vs, 1.0), jnp.full(K, _COM_SCALE)])
     # symmetric positive semi-definite: the singular values are the eigenvalues, and a batched
     # eigvalsh is ~1000x faster than a batched SVD of this size on a GPU
     eig = jnp.linalg.eigvalsh(H_data * scale[:, None] * scale[None, :])
-    singular = jnp.sort(jnp.abs(eig))[::-1]
-    converged = done & jnp.all(jnp.isfinite(theta))
     return Solution(
-        ratio=theta[:n],
+        ratio=r,
         friction=theta[n : 2 * n],
         viscous=theta[2 * n : 3 * n],
         com=theta[3 * n :],
         cov=cov,
-        sigma=jnp.sqrt(sigma2),
-        singular=singular,
+        sigma=jnp.sqrt(s2),
+        singular=jnp.sort(jnp.abs(eig))[::-1],
         excited=excited,
+        excitation=rel,
+        identified=ident,
+        data_dominated=dominated,
+        confounded=excited & ~dominated[:n],
+        confounded_link=link,
         iterations=it,
-        converged=converged,
-        rss=_rss(theta, st, n, K),
+        converged=done & jnp.all(jnp.isfinite(theta)),
+        rss=jnp.sum(_rss(theta, st, n, K)),
     )
 
 
 def _key(model: FitModel) -> tuple:
-    return (model.n, model.K, tuple(float(r) for r in model.ratio0), model.types)
+    return (
+        model.n,
+        model.K,
+        tuple(float(r) for r in model.ratio0),
+        model.types,
+        tuple(float(c) for c in model.com_prior),
+    )
 
 
 _BUCKET = 8  # sweeps are padded to a multiple of this, so few shapes get compiled
@@ -537,6 +713,13 @@ def _check_same_model(recs: list[Recording]) -> FitModel:
     return fit_model(recs[0].robot())
 
 
+#: What to do about a ratio confounded with a link's first moment.
+CURE = (
+    "add a recording with a known payload (or one in a second mounting) and fit the recordings "
+    "together"
+)
+
+
 def _params(
     model: FitModel, rec: Recording, sol: Solution, phase, phase_std, seconds: float
 ) -> RobotParams:
@@ -544,14 +727,14 @@ def _params(
     if not bool(sol.converged) or not np.all(np.isfinite(sol.ratio)):
         raise FitError(
             f"the joint fit did not converge after {int(sol.iterations)} iterations "
-            f"(noise estimate {float(sol.sigma):.3g} A); nothing was written"
+            f"(noise estimate {np.max(sol.sigma):.3g} A); nothing was written"
         )
     n = model.n
     std = np.sqrt(np.clip(np.diag(sol.cov), 0.0, None))
     com = sol.com.reshape(-1, 3)
     com_std = std[_LIN * n :].reshape(-1, 3)
     names = model.parameter_names()
-    prior = _prior_widths(model)
+    joints = arm_joint_names(model.robot)
     return RobotParams(
         model=rec.model,
         ratio=sol.ratio,
@@ -566,42 +749,75 @@ def _params(
         },
         method="jax",
         fit_seconds=seconds,
-        joints=arm_joint_names(model.robot),
+        joints=joints,
         diagnostics={
             "iterations": int(sol.iterations),
-            "current_noise": float(sol.sigma),
+            "current_noise": sol.sigma,
             "viscous": sol.viscous,
             "viscous_std": std[2 * n : 3 * n],
-            "ratio_source": [
-                "fit" if e else f"mean of type {model.types[j]}" for j, e in enumerate(sol.excited)
+            "excitation": [float(e) if np.isfinite(e) else None for e in sol.excitation],
+            "ratio_identified": sol.identified[:n],
+            "ratio_source": [_ratio_source(model, sol, j) for j in range(n)],
+            "confounded": [
+                {"joint": joints[j], "link": model.links[int(sol.confounded_link[j])]}
+                for j in np.flatnonzero(sol.confounded)
             ],
+            "com_prior": {
+                link: float(c) for link, c in zip(model.links, model.com_prior, strict=True)
+            },
+            "unidentified": [names[i] for i in np.flatnonzero(~sol.identified)],
             "singular_values": sol.singular,
-            "prior_dominated": [names[i] for i in np.flatnonzero(std > 0.5 * prior)],
         },
     )
 
 
-def _prior_widths(model: FitModel) -> np.ndarray:
-    """Prior standard deviation of each parameter (inf: no prior)."""
-    n = model.n
-    return np.concatenate(
-        [
-            PRIOR_RATIO * model.ratio0,
-            np.full(n, np.inf),
-            np.full(n, PRIOR_VISCOUS),
-            np.full(model.K, PRIOR_COM),
-        ]
-    )
+def _ratio_source(model: FitModel, sol: Solution, j: int) -> str:
+    """Where joint j's ratio comes from, in words ("fit": identified)."""
+    if sol.identified[j]:
+        return "fit"
+    if sol.confounded[j]:
+        return f"confounded with the COM of {model.links[int(sol.confounded_link[j])]}"
+    if not sol.excited[j]:
+        if model.types is not None and any(
+            sol.excited[k] and model.types[k] == model.types[j] for k in range(model.n)
+        ):
+            return f"mean of type {model.types[j]}"
+        return "prior: no gravity signal"
+    return "fit, imprecise"
 
 
-def fit(recordings: Recording | list[Recording], max_iter: int = 50) -> RobotParams:
+def warnings_of(params: RobotParams) -> list[str]:
+    """One line per ratio the fit could not identify on its own: confounded with a link's
+    first moment (naming the cure), or without gravity signal."""
+    d = params.diagnostics or {}
+    joints = params.joints or [str(j) for j in range(params.n)]
+    out = [
+        f"warning: the ratio of joint {c['joint']} is confounded with the centre of mass of "
+        f"{c['link']} (it rests on the COM prior): {CURE}"
+        for c in d.get("confounded", [])
+    ]
+    for j, source in enumerate(d.get("ratio_source", [])):
+        if source.startswith("prior"):
+            out.append(
+                f"warning: joint {joints[j]} carries no gravity signal in these sweeps: its ratio "
+                "is the data's ratio scale, not a measurement"
+            )
+    return out
+
+
+def fit(
+    recordings: Recording | list[Recording],
+    max_iter: int = 50,
+    com_prior: float | None = None,
+) -> RobotParams:
     """Fit one parameter set to one or several recordings of one robot, jointly.
 
-    The recordings may differ in gravity (mounting) and payload. Raises ``FitError`` when the
-    fit does not converge.
+    The recordings may differ in gravity (mounting) and payload. ``com_prior``: m, the COM
+    prior on every link (default: the model's, ``default_com_prior``). Raises ``FitError``
+    when the fit does not converge.
     """
     recs = [recordings] if isinstance(recordings, Recording) else list(recordings)
-    model = _check_same_model(recs)
+    model = _check_same_model(recs).with_com_prior(com_prior)
     start = time.perf_counter()
     prepared = [prepare(model, r) for r in recs]
     st = prepared[0][0]
@@ -660,6 +876,7 @@ def fit_each(
     batch: int | None = None,
     progress: bool = False,
     workers: int | None = None,
+    com_prior: float | None = None,
 ) -> list[RobotParams]:
     """Fit every recording on its own, ``batch`` at a time in one vmapped computation on the
     default backend (a GPU when present): moments, statistics and fit of a batch in one call.
@@ -667,7 +884,8 @@ def fit_each(
     ``batch``: recordings per call (default 256 on an accelerator, 8 on a CPU). ``workers``:
     host threads that pack the recordings (``_GROUP`` to a transfer) and send them to the
     device while the device fits the batch before (default: up to 8 on an accelerator, where
-    more only contend for host memory bandwidth; 1 on a CPU). Raises
+    more only contend for host memory bandwidth; 1 on a CPU). ``com_prior``: m, as ``fit``'s.
+    Raises
     ``FitError`` naming the recordings whose fit did not converge (no result then).
     """
     accelerated = not on_cpu()
@@ -705,7 +923,7 @@ def fit_each(
         for chunk in _chunks(recordings, batch):
             if model is None:
                 name = chunk[0].model
-                model = fit_model(name)
+                model = fit_model(name, com_prior)
             if any(r.model != name for r in chunk):
                 raise InputError("fit_each needs recordings of one robot model")
             start = time.perf_counter()
@@ -836,22 +1054,7 @@ def fit_batch(
     return BatchFit(solution, np.concatenate(coefs), std, compile_seconds, seconds)
 
 
-#: A friction loss whose standard error exceeds this (A) is not determined (no sweep of its joint).
-_FRICTION_UNKNOWN = 1.0
-
-
-def identified(model: FitModel, excited: np.ndarray, std: np.ndarray) -> np.ndarray:
-    """(..., P) bool: which of [ratio, friction, viscous, com] the data determine in a fit.
-
-    Not determined: the ratio of an unexcited joint (``excited`` (..., n) false: tied to its
-    actuator type's mean), a viscous term held at zero (joint swept at one speed), a friction
-    loss with a standard error beyond 1 A (joint not swept), and any parameter whose standard
-    error ``std`` (..., P) exceeds half its prior width (``prior_dominated`` in the params).
-    """
-    n = model.n
-    std = np.asarray(std, float)
-    ok = std <= 0.5 * _prior_widths(model)
-    ok[..., :n] &= np.asarray(excited, bool)
-    ok[..., n : 2 * n] &= std[..., n : 2 * n] < _FRICTION_UNKNOWN
-    ok[..., 2 * n : 3 * n] &= std[..., 2 * n : 3 * n] > 1e-3 * PRIOR_VISCOUS
-    return ok
+def identified(sol: Solution) -> np.ndarray:
+    """(..., P) bool: which of [ratio, friction, viscous, com] the data determine in a fit
+    (``Solution.identified``; ratios also to ``RATIO_IDENTIFIED``)."""
+    return np.asarray(sol.identified, bool)

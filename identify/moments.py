@@ -1,19 +1,24 @@
-"""Sweep moments: a recording reduced to a 6 x 6 matrix per sweep, exact for the joint fit.
+"""Sweep moments: a recording reduced to one small matrix per sweep, exact for the joint fit.
 
-While joint j sweeps with the other joints held, its gravity torque is exactly
-a sin(theta) + b cos(theta) + c in the swept angle theta (the carried subtree turns rigidly
-about the joint axis), and so is each column of its regressor. With
-psi = [sin theta, cos theta, 1, d, v, current] per steady sample (d the direction, v the pass
-velocity in rad/s: d times the median speed of the pass's steady samples, not the measured
-velocity, whose servo ripple correlates with the current; current the swept joint's in A), the
-sums ``sum psi psi^T`` over a sweep hold everything a least-squares fit of Eq. (13) (plus a
-viscous term in v) on that sweep needs: the fit never touches the samples again.
+While joint j sweeps with the others held at h, its gravity torque is exactly
+a(h) sin(theta) + b(h) cos(theta) + c(h) in the swept angle theta (the carried subtree turns
+rigidly about the joint axis), and so is each column of its regressor and their derivatives
+with respect to h. Held joints are never quite still (servo compliance: they give way as the
+load changes along the sweep), so the fit takes the torque to first order in each sample's
+held pose: with dh = q - hold (the sweep's mean pose over its steady samples; 0 for the swept
+joint) and u = [1, dh] (n + 1), a sample's torque is linear in
+z = [sin theta u, cos theta u, u] (3 (n + 1)). With psi = [z, d, v, current] per steady sample
+(d the direction, v the pass velocity in rad/s: d times the mean speed of the pass's steady
+samples, not the measured velocity, whose servo ripple correlates with the current; current
+the swept joint's in A), the sums ``sum psi psi^T`` over a sweep hold everything a
+least-squares fit of Eq. (13) (plus a viscous term in v) on that sweep needs: the fit never
+touches the samples again.
 
-Two steps: ``pack`` (host, pure data movement) copies the swept joint's t, q, dq and current
-of every pass back to back, and q at every ``HOLD_STRIDE``-th sample for the held pose; the
-reduction (JAX, jitted, on the default backend: a GPU reduces thousands of recordings at once)
-finds the steady samples (``identify.bins.steady``'s rule) and sums the moments. Medians over a
-pass (its speed, for the steady threshold and v) take every ``HOLD_STRIDE``-th sample.
+Two steps: ``pack`` (host, pure data movement) copies t, the swept joint's dq and current and
+every joint's q of every pass back to back; the reduction (JAX, jitted, on the default backend:
+a GPU reduces thousands of recordings at once) finds the steady samples
+(``identify.bins.steady``'s rule), their mean pose and the moments. The median speed of a pass
+takes every ``MEDIAN_STRIDE``-th sample.
 """
 
 from __future__ import annotations
@@ -35,8 +40,8 @@ class SweepMoments(NamedTuple):
     """Moments of the steady samples of each sweep of a recording (S sweeps, n joints).
 
     joint (S,) int: the swept joint. hold (S, n) rad: the held pose of the sweep, the mean of
-    q over every ``HOLD_STRIDE``-th steady sample (the swept joint's entry is irrelevant).
-    moments (S, 6, 6): sum of psi psi^T (see the module docstring). count (S,): steady
+    q over its steady samples (the swept joint's entry is irrelevant). moments (S, D, D),
+    D = ``moment_size(n)``: sum of psi psi^T (see the module docstring). count (S,): steady
     samples. gravity (3,) m/s^2; payload_mass kg; payload_com (3,) m, end-effector frame.
     """
 
@@ -55,6 +60,17 @@ class SweepMoments(NamedTuple):
     @property
     def n_samples(self) -> int:
         return int(self.count.sum())
+
+
+def moment_size(n: int) -> int:
+    """D: the size of a sweep's moment matrix for n joints, psi = [z (3 (n + 1)), d, v, current]."""
+    return 3 * (n + 1) + 3
+
+
+def z_index(term: int, k: int, n: int) -> int:
+    """Index in psi of z's entry (``term``: 0 sin theta, 1 cos theta, 2 one) x u_k (k = 0:
+    one, k = 1 + i: the held offset dh of joint i)."""
+    return term * (n + 1) + k
 
 
 def sweep_moments(rec: Recording, fraction: float = STEADY_FRACTION) -> SweepMoments:
@@ -96,7 +112,7 @@ def sweep_moments_batch(
     ``t`` (T,) s, ``joint`` (T,) and ``direction`` (T,) are common to every world (one plan
     recorded in W simulated worlds); ``q`` (W, T, n) rad, ``dq`` (W, T, n) rad/s and
     ``current`` (W, T, n) A are each world's. Returns a ``SweepMoments`` whose every field has
-    a leading world axis: joint (W, S), hold (W, S, n), moments (W, S, 6, 6), count (W, S),
+    a leading world axis: joint (W, S), hold (W, S, n), moments (W, S, D, D), count (W, S),
     gravity (W, 3), payload_mass (W,), payload_com (W, 3), with one entry per sweep of the
     labels; a sweep without steady samples in a world has zero moments, hold and count there
     (it adds nothing to a fit). ``world_moments(batch, w)`` is world w's ``sweep_moments``, to
@@ -113,13 +129,12 @@ def sweep_moments_batch(
         raise InputError(f"q, dq and current must have the same shape (W, T, n), got {q.shape}")
     lay = layout(joint, direction)
     S = lay.joint.size
-    S_pad, N, H, L = lay.sizes()
-    samples, hold = np.zeros((w, 4, N)), np.zeros((w, H, n))
-    _fill(lay, t, q, dq, current, samples, hold)
+    S_pad, N, L = lay.sizes()
+    samples = np.zeros((w, _ROWS + n, N))
+    _fill(lay, t, q, dq, current, samples)
     meta = {k: np.broadcast_to(v, (w, *v.shape[1:])) for k, v in _meta([lay], S_pad).items()}
     packed = Packed(
         samples=samples,
-        hold=hold,
         **meta,
         gravity=np.broadcast_to(np.asarray(gravity, float), (w, 3)),
         payload_mass=np.zeros(w),
@@ -175,9 +190,8 @@ def stack_worlds(parts: Sequence[SweepMoments]) -> SweepMoments:
 
 
 # ------------------------------------------------------------------------ packing (host)
-#: The held pose of a sweep is the mean of q over every HOLD_STRIDE-th steady sample (counted
-#: from the start of each pass), as the pass medians take every such sample.
-HOLD_STRIDE = MEDIAN_STRIDE
+#: Rows of ``Packed.samples`` before the joints' angles: t, the swept joint's dq and current.
+_ROWS = 3
 _PASS_BUCKET = 1024  # samples: pass lengths round up to this (few compiled shapes)
 _SAMPLE_BUCKET = 1 << 15
 _SWEEP_BUCKET = 8
@@ -188,23 +202,20 @@ def _up(n: int, bucket: int) -> int:
 
 
 class Packed(NamedTuple):
-    """The swept-joint samples of recordings, what ``reduce_packed`` reduces (host or device
-    arrays; ``pack`` and ``packed_moments`` stack recordings along a leading axis, the shapes
-    below are one recording's).
+    """The sweep samples of recordings, what ``reduce_packed`` reduces (host or device arrays;
+    ``pack`` and ``packed_moments`` stack recordings along a leading axis, the shapes below are
+    one recording's).
 
-    S sweeps of up to two passes (slot 0 the first, slot 1 the return). samples (4, N): t s,
-    the swept joint's q rad, dq rad/s and current A, the passes back to back, zero-padded.
-    hold (H, n) rad: q of every HOLD_STRIDE-th sample of each pass, back to back. start,
-    length, hold_start (S, 2) int: where each pass begins in samples and in hold, and its
+    S sweeps of up to two passes (slot 0 the first, slot 1 the return). samples (3 + n, N):
+    t s, the swept joint's dq rad/s and current A, then q rad of every joint, the passes back to
+    back, zero-padded. start, length (S, 2) int: where each pass begins in samples, and its
     sample count (0: no such pass). direction (S, 2) float, +1 / -1 (0: no pass). joint (S,)
     int, the swept joint. gravity (3,) m/s^2, payload_mass kg, payload_com (3,) m.
     """
 
     samples: np.ndarray
-    hold: np.ndarray
     start: np.ndarray
     length: np.ndarray
-    hold_start: np.ndarray
     direction: np.ndarray
     joint: np.ndarray
     gravity: np.ndarray
@@ -225,17 +236,11 @@ class Layout(NamedTuple):
     length: np.ndarray
     direction: np.ndarray
 
-    @property
-    def held(self) -> np.ndarray:
-        """(S, 2) hold rows of each pass: its every HOLD_STRIDE-th sample."""
-        return -(-self.length // HOLD_STRIDE)
-
-    def sizes(self) -> tuple[int, int, int, int]:
-        """Bucketed (S sweeps, N samples, H hold rows, L pass length) of the packed form."""
+    def sizes(self) -> tuple[int, int, int]:
+        """Bucketed (S sweeps, N samples, L pass length) of the packed form."""
         return (
             _up(self.joint.size, _SWEEP_BUCKET),
             _up(int(self.length.sum()), _SAMPLE_BUCKET),
-            _up(int(self.held.sum()), _SAMPLE_BUCKET // HOLD_STRIDE),
             _up(int(self.length.max(initial=1)), _PASS_BUCKET),
         )
 
@@ -271,78 +276,69 @@ def layout(joint: np.ndarray, direction: np.ndarray) -> Layout:
 
 
 class PackBuffer:
-    """Host buffers that ``pack`` reuses from call to call (one per thread): writing into
+    """A host buffer that ``pack`` reuses from call to call (one per thread): writing into
     memory already mapped is several times faster than into fresh pages."""
 
     def __init__(self) -> None:
-        self._samples = np.zeros((0, 4, 0))
-        self._hold = np.zeros((0, 0, 0))
+        self._samples = np.zeros((0, 0, 0))
 
-    def take(self, k: int, N: int, H: int, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """Views (k, 4, N) and (k, H, n) with arbitrary finite contents (of the arrays from
-        before when they are large enough)."""
-        if any(a < b for a, b in zip(self._samples.shape, (k, 4, N), strict=True)):
-            self._samples = np.zeros((k, 4, N))
-        if any(a < b for a, b in zip(self._hold.shape, (k, H, n), strict=True)):
-            self._hold = np.zeros((k, H, n))
-        return self._samples[:k, :, :N], self._hold[:k, :H, :n]
+    def take(self, k: int, rows: int, N: int) -> np.ndarray:
+        """A view (k, rows, N) with arbitrary finite contents (of the array from before when
+        it is large enough)."""
+        if any(a < b for a, b in zip(self._samples.shape, (k, rows, N), strict=True)):
+            self._samples = np.zeros((k, rows, N))
+        return self._samples[:k, :rows, :N]
 
 
 def _meta(lays: Sequence[Layout], S: int) -> dict[str, np.ndarray]:
     """Per-pass fields of ``Packed`` for the layouts, stacked and padded to S sweeps."""
     k = len(lays)
-    out = {f: np.zeros((k, S, 2), np.int64) for f in ("start", "length", "hold_start")}
+    out = {f: np.zeros((k, S, 2), np.int64) for f in ("start", "length")}
     out["direction"] = np.zeros((k, S, 2))
     out["joint"] = np.zeros((k, S), np.int64)
     for i, lay in enumerate(lays):
         m = lay.joint.size
         ends = np.cumsum(lay.length.ravel()).reshape(-1, 2)
-        held = np.cumsum(lay.held.ravel()).reshape(-1, 2)
         out["start"][i, :m] = ends - lay.length
-        out["hold_start"][i, :m] = held - lay.held
         out["length"][i, :m] = lay.length
         out["direction"][i, :m] = lay.direction
         out["joint"][i, :m] = lay.joint
     return out
 
 
-def _fill(lay: Layout, t, q, dq, current, samples: np.ndarray, hold: np.ndarray) -> None:
-    """Copy the passes of ``lay`` into ``samples`` (..., 4, N) and ``hold`` (..., H, n), in
-    packed order; ``q``, ``dq``, ``current`` (..., T, n) and ``t`` (T,) of one recording or of
-    worlds that share the layout (a leading axis). Strided slice copies, no index arrays."""
-    at = held = 0
+def _fill(lay: Layout, t, q, dq, current, samples: np.ndarray) -> None:
+    """Copy the passes of ``lay`` into ``samples`` (..., 3 + n, N), in packed order; ``q``,
+    ``dq``, ``current`` (..., T, n) and ``t`` (T,) of one recording or of worlds that share the
+    layout (a leading axis). Slice copies, no index arrays."""
+    at = 0
     for j, first, length in zip(lay.joint.tolist(), lay.first, lay.length, strict=True):
         for f, m in zip(first.tolist(), length.tolist(), strict=True):
             part = slice(f, f + m)
             samples[..., 0, at : at + m] = t[part]
-            samples[..., 1, at : at + m] = q[..., part, j]
-            samples[..., 2, at : at + m] = dq[..., part, j]
-            samples[..., 3, at : at + m] = current[..., part, j]
-            h = -(-m // HOLD_STRIDE)
-            hold[..., held : held + h, :] = q[..., f : f + m : HOLD_STRIDE, :]
-            at, held = at + m, held + h
+            samples[..., 1, at : at + m] = dq[..., part, j]
+            samples[..., 2, at : at + m] = current[..., part, j]
+            samples[..., _ROWS:, at : at + m] = np.swapaxes(q[..., part, :], -1, -2)
+            at += m
 
 
 def pack(recs: Sequence[Recording], buffer: PackBuffer | None = None) -> tuple[Packed, int]:
-    """The swept-joint samples of recordings, stacked (a leading axis on every field of the
+    """The sweep samples of recordings, stacked (a leading axis on every field of the
     ``Packed``; host arrays, padded to the largest), and the pass length (samples) to reduce
-    them with. Pure data movement: a strided copy of four columns and a subsample of q.
+    them with. Pure data movement.
 
-    ``buffer``: reuse its arrays for samples and hold (the result then aliases them: send it
-    to the device before the next ``pack`` into the same buffer)."""
+    ``buffer``: reuse its array for the samples (the result then aliases it: send it to the
+    device before the next ``pack`` into the same buffer)."""
     lays = [layout(r.joint, r.direction) for r in recs]
     for i, lay in enumerate(lays):
         if lay.joint.size == 0:
             raise InputError(f"recording {i} has no sweep (field 'joint' is -1 everywhere)")
     n = recs[0].q.shape[1]
-    S, N, H, L = (max(dims) for dims in zip(*(lay.sizes() for lay in lays), strict=True))
-    k = len(recs)
-    samples, hold = (buffer or PackBuffer()).take(k, N, H, n)
+    S, N, L = (max(dims) for dims in zip(*(lay.sizes() for lay in lays), strict=True))
+    samples = (buffer or PackBuffer()).take(len(recs), _ROWS + n, N)
     for i, (rec, lay) in enumerate(zip(recs, lays, strict=True)):
-        _fill(lay, rec.t, rec.q, rec.dq, rec.current, samples[i], hold[i])
+        _fill(lay, rec.t, rec.q, rec.dq, rec.current, samples[i])
     packed = Packed(
         samples=samples,
-        hold=hold,
         **_meta(lays, S),
         gravity=np.stack([np.asarray(r.gravity, float) for r in recs]),
         payload_mass=np.array([float(r.payload_mass) for r in recs]),
@@ -362,41 +358,61 @@ def _median(x: jax.Array, keep: jax.Array, axis: int = -1) -> jax.Array:
     return jnp.squeeze(jnp.where(c > 0, 0.5 * (lo + hi), jnp.nan), axis)
 
 
+def _mean(x: jax.Array, keep: jax.Array) -> jax.Array:
+    """Mean of ``x`` over its last axis where ``keep`` (kept dims; 0 where none is kept)."""
+    count = jnp.sum(keep, axis=-1, keepdims=True)
+    return jnp.sum(jnp.where(keep, x, 0.0), axis=-1, keepdims=True) / jnp.maximum(count, 1)
+
+
 def reduce_packed(p: Packed, L: int, fraction: float, trim: float) -> SweepMoments:
     """Sweep moments of one packed recording, its passes padded to ``L`` samples (pure,
     vmap-able; ``packed_moments`` runs it on a stack). ``fraction`` and ``trim``: see
     ``identify.bins.steady``."""
+    n = p.samples.shape[0] - _ROWS
+    S = p.joint.shape[0]
     off = jnp.arange(L)
     valid = off < p.length[..., None]  # (S, 2, L)
     idx = jnp.minimum(p.start[..., None] + off, p.samples.shape[-1] - 1)
-    t, theta, rate, current = (p.samples[k][idx] for k in range(4))
+    t, rate, current = (p.samples[k][idx] for k in range(_ROWS))
+    q = jnp.moveaxis(p.samples[_ROWS:][:, idx], 0, -1)  # (S, 2, L, n)
+    swept = jax.nn.one_hot(p.joint, n, dtype=q.dtype)[:, None, None, :]  # (S, 1, 1, n)
+    theta = jnp.sum(q * swept, axis=-1)
     d = p.direction[..., None]
     speed = rate * d  # along the pass's direction
-    sub = slice(None, None, HOLD_STRIDE)  # the medians are over every HOLD_STRIDE-th sample
-    ref = _median(speed[..., sub], valid[..., sub])[..., None]  # (S, 2, 1) pass speed
-    fast = valid & (speed >= fraction * ref) & (ref > 0)
+    sub = slice(None, None, MEDIAN_STRIDE)  # the medians are over every MEDIAN_STRIDE-th sample
+    # the pass speed: the mean over the samples at >= ``fraction`` of the median speed (the
+    # median alone may fall on a ramp when a pass has few samples)
+    median = _median(speed[..., sub], valid[..., sub])[..., None]  # (S, 2, 1)
+    ref = _mean(speed, valid & (speed >= fraction * median) & (median > 0))
+    fast = valid & (jnp.abs(speed - ref) <= (1.0 - fraction) * ref) & (ref > 0)
     lo = jnp.min(jnp.where(fast, t, jnp.inf), axis=-1, keepdims=True)
     hi = jnp.max(jnp.where(fast, t, -jnp.inf), axis=-1, keepdims=True)
     steady = fast & (t > lo + trim) & (t < hi - trim)
-    v = jnp.nan_to_num(d[..., 0] * _median(speed[..., sub], steady[..., sub]))[..., None]
-    # psi = E [sin, cos, 1, current] with E constant over a pass (d and v are): the moments
-    # are E G E^T with G the 4 x 4 moments of [sin, cos, 1, current] over the steady samples
-    phi = jnp.stack([jnp.sin(theta), jnp.cos(theta), jnp.ones_like(theta), current], axis=-2)
-    G = jnp.matmul(phi * steady[..., None, :], jnp.swapaxes(phi, -1, -2))  # (S, 2, 4, 4)
-    E = jnp.zeros((*d.shape[:-1], 6, 4))
-    E = E.at[..., 0, 0].set(1.0).at[..., 1, 1].set(1.0).at[..., 2, 2].set(1.0)
-    E = E.at[..., 3, 2].set(d[..., 0]).at[..., 4, 2].set(v[..., 0]).at[..., 5, 3].set(1.0)
+    v = d * _mean(speed, steady)
+    w = steady.astype(q.dtype)[..., None]
+    count = jnp.sum(steady, axis=(1, 2))
+    hold = jnp.sum(q * w, axis=(1, 2)) / jnp.maximum(count, 1)[:, None]  # (S, n)
+    dh = (q - hold[:, None, None, :]) * (1.0 - swept)  # (S, 2, L, n), 0 for the swept joint
+    u = jnp.concatenate([jnp.ones_like(dh[..., :1]), dh], axis=-1)  # (S, 2, L, n + 1)
+    trig = jnp.stack([jnp.sin(theta), jnp.cos(theta), jnp.ones_like(theta)], axis=-1)
+    z = (trig[..., :, None] * u[..., None, :]).reshape(*theta.shape, -1)  # (S, 2, L, 3 (n + 1))
+    # psi = E [z, current] with E constant over a pass (d and v are multiples of z's "one"):
+    # the moments are E G E^T with G the moments of [z, current] over the steady samples
+    phi = jnp.concatenate([z, current[..., None]], axis=-1) * w
+    G = jnp.einsum("skla,sklb->skab", phi, phi)  # (S, 2, Z + 1, Z + 1)
+    Z = z.shape[-1]
+    D = moment_size(n)
+    one = z_index(2, 0, n)
+    E = jnp.zeros((S, 2, D, Z + 1))
+    E = E.at[:, :, jnp.arange(Z), jnp.arange(Z)].set(1.0)
+    E = E.at[:, :, Z, one].set(d[..., 0]).at[:, :, Z + 1, one].set(v[..., 0])
+    E = E.at[:, :, Z + 2, Z].set(1.0)
     moments = jnp.einsum("skai,skij,skbj->sab", E, G, E)
-    hidx = jnp.minimum(p.hold_start[..., None] + jnp.arange(L // HOLD_STRIDE), p.hold.shape[0] - 1)
-    S = p.joint.shape[0]
-    held = p.hold[hidx].reshape(S, -1, p.hold.shape[-1])  # (S, 2 L / stride, n)
-    keep = steady[..., sub].reshape(S, -1, 1).astype(held.dtype)
-    hold = jnp.sum(held * keep, axis=1) / jnp.maximum(jnp.sum(keep, axis=1), 1.0)
     return SweepMoments(
         joint=p.joint,
         hold=hold,
         moments=moments,
-        count=jnp.sum(steady, axis=(1, 2)),
+        count=count,
         gravity=p.gravity,
         payload_mass=p.payload_mass,
         payload_com=p.payload_com,

@@ -38,8 +38,14 @@ def recording(
     payload_mass: float = 0.0,
     payload_com=(0.0, 0.0, 0.0),
     viscous=None,
+    compliance: float = 0.0,
+    scale: float = 1.0,
 ) -> Recording:
-    """A recording of ``sweeps`` [(joint, hold, lower, upper, speed)] for ``truth``."""
+    """A recording of ``sweeps`` [(joint, hold, lower, upper, speed)] for ``truth``.
+
+    ``compliance`` rad/(N m): held joints give way to their gravity torque as a stiff servo
+    does (q = hold - compliance g(q)), the swept joint follows its path. ``scale``: the
+    current's unit in A (1e-3: mA)."""
     parts = [sweep(*s) for s in sweeps]
     q = np.concatenate([p[0] for p in parts])
     dq = np.concatenate([p[1] for p in parts])
@@ -49,6 +55,12 @@ def recording(
     if payload_mass > 0:
         params = robot.with_payload(params, payload_mass, payload_com)
     g = jax.jit(jax.vmap(lambda x: dynamics.gravity(robot.tree, x, params, jnp.asarray(gravity))))
+    if compliance:
+        held = np.ones_like(q, bool)
+        held[np.arange(len(d)), joint] = False
+        target = q.copy()
+        for _ in range(3):  # fixed point of q = hold - compliance g(q)
+            q = np.where(held, target - compliance * np.asarray(g(q)), target)
     current = truth.ratio * np.asarray(g(q))
     rows = np.arange(len(d))
     current[rows, joint] += truth.friction[joint] * d
@@ -60,10 +72,10 @@ def recording(
             t=np.arange(len(d)) * 1e-3,
             q=q,
             dq=dq,
-            current=current,
+            current=current / scale,
             joint=joint,
             direction=d,
-            model=robot.name,
+            model=robot.reference,
             gravity=np.asarray(gravity, float),
             payload_mass=payload_mass,
             payload_com=np.asarray(payload_com, float),

@@ -5,8 +5,15 @@ import pytest
 import synthetic
 
 from jaxcomp.errors import InputError
-from jaxcomp.identify.bins import MEDIAN_STRIDE, steady, sweep_ids
-from jaxcomp.identify.moments import PackBuffer, layout, pack, packed_moments, sweep_moments
+from jaxcomp.identify.bins import steady, sweep_ids
+from jaxcomp.identify.moments import (
+    PackBuffer,
+    layout,
+    moment_size,
+    pack,
+    packed_moments,
+    sweep_moments,
+)
 from jaxcomp.recording import Recording
 
 
@@ -53,28 +60,27 @@ def _numpy_moments(rec: Recording):
     """The moments, counts and held poses summed sample by sample with numpy."""
     keep = steady(rec)
     ids = sweep_ids(rec.joint, rec.direction)
+    n = rec.q.shape[1]
     out = []
     for s in range(ids.max() + 1):
         rows = np.flatnonzero((ids == s) & keep)
         j = rec.joint[rows[0]]
-        psi = np.empty((rows.size, 6))
-        held = []
+        hold = rec.q[rows].mean(axis=0)
+        psi = np.empty((rows.size, moment_size(n)))
         for d in (-1, 1):
             pass_rows = np.flatnonzero((ids == s) & (rec.direction == d))
             if pass_rows.size == 0:
                 continue
-            sub = pass_rows[::MEDIAN_STRIDE]
-            sub = sub[keep[sub]]
-            v = d * np.median(np.abs(rec.dq[sub, j]))
             mine = rec.direction[rows] == d
-            th = rec.q[rows[mine], j]
-            psi[mine] = np.stack(
-                [np.sin(th), np.cos(th), np.ones_like(th), np.full_like(th, d),
-                 np.full_like(th, v), rec.current[rows[mine], j]],
-                axis=1,
-            )  # fmt: skip
-            held.append(rec.q[sub])
-        out.append((j, psi.T @ psi, rows.size, np.concatenate(held).mean(axis=0)))
+            v = d * np.mean(np.abs(rec.dq[rows[mine], j]))
+            q = rec.q[rows[mine]]
+            u = np.concatenate([np.ones((len(q), 1)), q - hold], axis=1)
+            u[:, 1 + j] = 0.0
+            th = q[:, j]
+            z = np.concatenate([np.sin(th)[:, None] * u, np.cos(th)[:, None] * u, u], axis=1)
+            tail = [np.full_like(th, d), np.full_like(th, v), rec.current[rows[mine], j]]
+            psi[mine] = np.concatenate([z, np.stack(tail, axis=1)], axis=1)
+        out.append((j, psi.T @ psi, rows.size, hold))
     return out
 
 
@@ -84,7 +90,8 @@ def test_moments_are_the_sums_over_the_steady_samples(rec):
     assert got.n_sweeps == len(want) == 14
     for s, (j, moments, count, hold) in enumerate(want):
         assert got.joint[s] == j and got.count[s] == count
-        np.testing.assert_allclose(got.moments[s], moments, rtol=1e-11, atol=1e-9)
+        scale = np.abs(moments).max()
+        np.testing.assert_allclose(got.moments[s], moments, rtol=1e-9, atol=1e-12 * scale)
         np.testing.assert_allclose(got.hold[s], hold, rtol=0, atol=1e-12)
 
 
@@ -104,7 +111,10 @@ def test_a_reused_buffer_leaks_nothing_into_the_next_pack(rec):
     S = fresh.n_sweeps
     np.testing.assert_array_equal(np.asarray(reused.count)[0, :S], fresh.count)
     assert not np.asarray(reused.count)[0, S:].any()
-    np.testing.assert_allclose(np.asarray(reused.moments)[1, :S], fresh.moments, rtol=1e-12)
+    scale = np.abs(fresh.moments).max()
+    np.testing.assert_allclose(
+        np.asarray(reused.moments)[1, :S], fresh.moments, rtol=1e-9, atol=1e-13 * scale
+    )
     np.testing.assert_allclose(np.asarray(reused.hold)[1, :S], fresh.hold, rtol=1e-12)
 
 

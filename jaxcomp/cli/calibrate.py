@@ -15,11 +15,11 @@ from jaxcomp.errors import InputError
 _METHODS = ("jax", "scipy")
 
 
-def _fit(recordings, method: str):
+def _fit(recordings, method: str, com_prior: float | None = None):
     if method == "jax":
         from jaxcomp.identify.jax_fit import fit
 
-        return fit(recordings)
+        return fit(recordings, com_prior=com_prior)
     from jaxcomp.identify.baseline import fit_baseline
 
     if len(recordings) > 1:
@@ -28,6 +28,14 @@ def _fit(recordings, method: str):
             "to fit several recordings jointly, or --each"
         )
     return fit_baseline(recordings[0])
+
+
+def _warn(params) -> None:
+    """The fit's warnings (confounded or unexcited ratios, and the cure), one line each."""
+    from jaxcomp.identify.jax_fit import warnings_of
+
+    for line in warnings_of(params):
+        click.echo(line, err=True)
 
 
 def _check_outputs(inputs: tuple[str, ...], outputs: dict[str, str | None]) -> None:
@@ -180,6 +188,7 @@ def calibrate(
         columns["truth"] = truth.params
     links = sorted({k for p in columns.values() for k in p.com_offset}, key=robot.link_index)
     click.echo(_table(columns, links))
+    _warn(fits["jax"])
     plot_sweeps(rec, columns, out / "sweeps.png")
     click.echo(f"wrote {out / 'params.json'}, {out / 'params_scipy.json'}, {out / 'sweeps.png'}")
 
@@ -213,7 +222,14 @@ def calibrate(
     default=None,
     help="PNG: sweeps and model (one fit) or boxplots normalized by the median (--each).",
 )
-def fit(recordings, method, each, out_file, plot_file) -> None:
+@click.option(
+    "--com-prior",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=None,
+    help="Prior standard deviation of every link's COM offset per axis, m (default: the "
+    "model's jaxcomp_com_prior, else 10 %% of each link's radius of gyration, >= 2 mm).",
+)
+def fit(recordings, method, each, out_file, plot_file, com_prior) -> None:
     """Fit ratio, friction and COM offsets to calibration recordings (.npz).
 
     Several recordings of one robot are fitted jointly into one params set (e.g. two mountings
@@ -230,7 +246,7 @@ def fit(recordings, method, each, out_file, plot_file) -> None:
         if method == "jax":
             from jaxcomp.identify.jax_fit import fit_each
 
-            results = fit_each(recs, progress=True)
+            results = fit_each(recs, progress=True, com_prior=com_prior)
         else:
             results = [_fit([r], "scipy") for r in recs]
         write_json_atomic(out_file, [p.to_dict() for p in results])
@@ -242,11 +258,13 @@ def fit(recordings, method, each, out_file, plot_file) -> None:
 
             plot_batch(results, plot_file)
         return
-    params = _fit(recs, method)
+    params = _fit(recs, method, com_prior)
     params.save(out_file)
     robot = recs[0].robot()
     links = sorted(params.com_offset, key=robot.link_index)
     click.echo(_table({method: params}, links))
+    if method == "jax":
+        _warn(params)
     click.echo(f"fit in {params.fit_seconds:.3f} s -> {out_file}")
     if plot_file:
         from jaxcomp.identify.plots import plot_sweeps

@@ -82,7 +82,7 @@ def jax_estimates(
         true_phase, _ = phase_shift(model, fits.coef[i], joint[i], true[i, lin:], cov)
         phases.append((fit_phase[0], fit_phase[1], true_phase))
     phase, phase_std, true_phase = (np.array(x) for x in zip(*phases, strict=True))
-    ident = identified(model, sol.excited, fits.std)
+    ident = identified(sol)
     nb = len(robot.link_names)
     fit_com = np.zeros((w, nb, 3))
     fit_com[:, model.link_ids] = sol.com.reshape(w, -1, 3)
