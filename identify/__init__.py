@@ -2,6 +2,8 @@
 
 - ``plan``: calibration plans (sweeps, holds, speeds) and their JSON file;
 - ``plan_design``: the paper's plan, its held poses chosen on the robot's model;
+- ``random_plans``: seeded random plans, to validate the fit on plans it was not tuned on;
+  ``named_plans``: plans by name (default, short, random, random:K, a JSON file);
 - ``recorder``: recording a plan on an ``Arm`` into a recording (``jaxcomp.recording``);
 - ``bins``: the steady samples of a sweep and their angle-bin means;
 - ``moments``: sweep moments, a recording reduced exactly for the joint fit;

@@ -1,16 +1,19 @@
 """Calibration plans by name: "default" (the paper's, ``plan_design.default_plan``), "short"
-(``short_plan``, for quick runs and CI) or a plan JSON file. Angles in rad."""
+(``short_plan``, for quick runs and CI), "random" or "random:K" (K seeded random plans,
+``random_plans.random_plan``) or a plan JSON file. Angles in rad."""
 
 import math
+import re
 from pathlib import Path
 
 from jaxcomp.errors import InputError
 from jaxcomp.identify.plan import CalibrationPlan, load_plan
 from jaxcomp.identify.plan_design import default_plan
+from jaxcomp.identify.random_plans import plan_seed, random_plan
 from jaxcomp.robot import Robot
 
-#: Plan names of ``--plan`` (else a plan JSON file).
-PLANS = ("default", "short")
+#: Plan names of ``--plan`` (else a plan JSON file); "random:K" names K random plans.
+PLANS = ("default", "short", "random", "random:K")
 
 
 def short_plan(
@@ -33,15 +36,40 @@ def short_plan(
     )
 
 
+def random_count(plan: str) -> int | None:
+    """How many plans a random name stands for: K of "random:K", 1 of "random"; None for any
+    other name. InputError for "random:" without a count K >= 1."""
+    if plan == "random":
+        return 1
+    if not plan.startswith("random:"):
+        return None
+    match = re.fullmatch(r"random:([0-9]+)", plan)
+    if match is None or int(match[1]) < 1:
+        raise InputError(f"--plan random:K needs an integer K >= 1, got {plan!r}")
+    return int(match[1])
+
+
+def plan_count(plan: str) -> int:
+    """How many plans ``plan`` names: K for "random:K", else 1."""
+    return random_count(plan) or 1
+
+
 def check_plan_name(plan: str) -> None:
     """InputError unless ``plan`` is one of ``PLANS`` or an existing file."""
-    if plan not in PLANS and not Path(plan).is_file():
+    if random_count(plan) is None and plan not in PLANS and not Path(plan).is_file():
         raise InputError(f"--plan must be one of {', '.join(PLANS)} or a plan JSON file: {plan}")
 
 
-def named_plan(robot: Robot, plan: str) -> CalibrationPlan:
-    """``plan``: "default" (``default_plan``), "short" (``short_plan``) or a plan JSON file."""
+def named_plan(robot: Robot, plan: str, *, seed: int = 0, group: int = 0) -> CalibrationPlan:
+    """``plan``: "default" (``default_plan``), "short" (``short_plan``), a plan JSON file, or
+    "random" / "random:K": plan ``group`` (0 <= group < K) of K random plans drawn from
+    ``seed`` (``random_plan(robot, plan_seed(seed, group))``)."""
     check_plan_name(plan)
+    count = random_count(plan)
+    if count is not None:
+        if not 0 <= group < count:
+            raise InputError(f"plan {plan!r} has no group {group} (0..{count - 1})")
+        return random_plan(robot, plan_seed(seed, group))
     if plan == "default":
         return default_plan(robot)
     if plan == "short":

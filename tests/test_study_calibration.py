@@ -1,11 +1,13 @@
 """`jaxcomp study calibration`: truths, plan signals, batched moments and fits, the report.
 
-MJX compiles for ~20-30 s on a 2-core CPU, once per simulator: each run here loads its robot,
-which keeps its own simulator (``studies.setup.simulator``). The unmarked runs use a tiny plan
-(joints 1-4, +-25 deg at 60 deg/s, 14 s) in 2 worlds recorded at 100 Hz; ``--plan short``
-(26 s, every joint) in 4 worlds is slow.
+MJX compiles for ~20-30 s on a 2-core CPU, once per simulator: each CLI run here loads its
+robot, which keeps its own simulator (``studies.setup.simulator``); the other runs share the
+module's robot. The unmarked runs use a tiny plan (joints 1-4, +-25 deg at 60 deg/s, 14 s) in 2
+worlds recorded at 100 Hz, or two tiny random plans; ``--plan short`` (26 s, every joint) in 4
+worlds is slow.
 """
 
+import functools
 import json
 import math
 import os
@@ -22,7 +24,7 @@ from jaxcomp.cli import cli
 from jaxcomp.errors import InputError
 from jaxcomp.hardware import PAPER_FRICTION, PAPER_RATIO
 from jaxcomp.hardware.mjx import Move, reference_trajectory
-from jaxcomp.identify import jax_fit
+from jaxcomp.identify import jax_fit, named_plans
 from jaxcomp.identify.evaluate import (
     error_statistics,
     gravity_current,
@@ -32,8 +34,10 @@ from jaxcomp.identify.evaluate import (
 )
 from jaxcomp.identify.moments import sweep_moments, world_moments
 from jaxcomp.identify.plan import CalibrationPlan, Sweep
+from jaxcomp.identify.random_plans import plan_seed
 from jaxcomp.robot_params import RobotParams
 from jaxcomp.studies import calibration as sc
+from jaxcomp.studies.calibration_estimates import jax_truth_vector
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 3
@@ -171,6 +175,8 @@ def test_pooled_gravity_error_is_one_number_over_poses_and_joints(robot):
         (["--worlds", "2", "--model-error", "0.5", "0.2"], "--model-error"),
         (["--worlds", "2", "--noise", "nan"], "--noise must be"),
         (["--worlds", "2", "--plan", "nope"], "--plan must be one of"),
+        (["--worlds", "2", "--plan", "random:0"], "--plan random:K needs an integer K >= 1"),
+        (["--worlds", "2", "--plan", "random:3"], "needs at least as many --worlds (2)"),
     ],
 )
 def test_bad_input_is_refused_before_anything_runs(args, message, tmp_path):
@@ -273,7 +279,7 @@ def test_batched_moments_and_fits_are_the_single_recording_ones(robot, tiny_plan
     what ``sweep_moments`` and ``jax_fit.fit`` give on the recording of a world."""
     truth = sc.draw_truth(robot, 1, SEED, sc.TruthSpread())
     signal = sc.plan_signal(sc.named_plan(robot, tiny_plan), sc.start_pose(robot))
-    sim = sc.simulator(None)
+    sim = sc.simulator(None, robot)  # compiled once for the module's runs of 1 world
     res = sc.simulate(sim, truth, signal, seed=SEED, every=10, world_batch=1, keep=1)
     rec = res.recordings[0]
     single, batched = sweep_moments(rec), world_moments(res.moments, 0)
@@ -285,7 +291,7 @@ def test_batched_moments_and_fits_are_the_single_recording_ones(robot, tiny_plan
     # fits stop at the same convergence tolerance from moments equal to rounding, so their
     # estimates agree far inside the standard errors (~1e-3 relative), not bit for bit.
     model = jax_fit.fit_model(robot)
-    fit = jax_fit.fit_batch(model, res.moments)
+    fit = jax_fit.fit_batch(model, res.moments, mesh=sim.mesh)  # as the study fits
     want = jax_fit.fit(rec)
     np.testing.assert_allclose(fit.solution.ratio[0], want.ratio, rtol=1e-6)
     np.testing.assert_allclose(fit.solution.friction[0], want.friction, rtol=1e-6, atol=1e-9)
@@ -293,6 +299,71 @@ def test_batched_moments_and_fits_are_the_single_recording_ones(robot, tiny_plan
     np.testing.assert_allclose(fit.solution.sigma[0], want.diagnostics["current_noise"])
     swept = np.asarray(want.diagnostics["excitation"], dtype=object) != None  # noqa: E711
     assert np.all((0.045 < fit.solution.sigma[0]) & (fit.solution.sigma[0] < 0.055) | ~swept)
+
+
+def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch):
+    """--plan random:2: world 0 records one random plan, world 1 another (quick ones here: short
+    fast sweeps near the middle of the ranges; the study's take minutes on this CPU). The truths
+    are those of any plan; the report lists both plans, how often the JAX fit's pooled gravity-
+    current error is worse than the scipy fit's, and the largest identified ratio error."""
+    quick = functools.partial(
+        named_plans.random_plan,
+        speeds=(math.radians(50), math.radians(60)),
+        spans=(math.radians(40), math.radians(50)),
+        hold_fraction=0.3,
+        move_speed=math.radians(90),
+    )
+    monkeypatch.setattr(named_plans, "random_plan", quick)
+    settings = sc.CalibrationSettings(2, SEED, plan="random:2", baseline_sample=1, poses=100)
+    report, arrays, paths = sc.study_into(tmp_path / "r", settings, progress=False, robot=robot)
+    assert sorted(p.name for p in paths) == sorted([*sc.FIGURES, sc.WORLDS_FILE, sc.STUDY_FILE])
+    json.loads((tmp_path / "r" / sc.STUDY_FILE).read_text(), parse_constant=pytest.fail)
+    start, n = sc.start_pose(robot), 6
+    plans = [named_plans.named_plan(robot, "random:2", seed=SEED, group=g) for g in range(2)]
+    assert plans[0] != plans[1]
+    groups = report["plan"]["groups"]
+    assert [d["worlds"] for d in groups] == [[0, 1], [1, 2]]
+    for g, (d, plan) in enumerate(zip(groups, plans, strict=True)):
+        assert d["seed"] == plan_seed(SEED, g) and d["joints"] == plan.joints
+        assert d["steps"] == plan.samples(start) and d["sweeps"] == len(plan)
+    assert report["plan"]["duration_s"] == pytest.approx(np.mean([d["duration_s"] for d in groups]))
+    np.testing.assert_array_equal(arrays["plan_group"], [0, 1])
+    assert report["jax"]["converged"] == 2 and report["faulted_worlds"] == 0
+    # world w has the truth it has under any plan; it recorded its group's plan: the fit
+    # determines the friction of the joints that plan sweeps, and of no other
+    model = jax_fit.fit_model(robot)
+    truth = jax_truth_vector(model, sc.draw_truth(robot, 2, SEED, sc.TruthSpread()))
+    np.testing.assert_array_equal(arrays["truth"][:, : truth.shape[1]], truth)
+    for w, plan in enumerate(plans):
+        swept = np.isin(np.arange(n), plan.joints)
+        np.testing.assert_array_equal(arrays["jax_identified"][w, n : 2 * n], swept)
+    # the pooled gravity-current errors, recomputed from the estimates, and their comparison
+    est = arrays["jax_estimate"]
+    com = np.zeros((2, 2, len(robot.link_names), 3))
+    for k, x in enumerate((truth, est)):
+        com[k][:, model.link_ids] = x[:, 3 * n : 3 * n + model.K].reshape(2, -1, 3)
+    poses = random_poses(robot, 100, seed=SEED)
+    pooled = gravity_current_error_batch(
+        robot, truth[:, :n], com[0], est[:, :n], com[1], poses, pooled=True
+    )
+    np.testing.assert_allclose(arrays["jax_gravity_current_error_pooled"], pooled, rtol=1e-9)
+    jp, sp = pooled[0], float(arrays["scipy_gravity_current_error_pooled"][0])
+    assert 0 < sp < 1
+    cmp = report["jax"]["on_scipy_worlds"]["pooled_gravity_current_error"]
+    assert cmp == {
+        "worlds": 1,
+        "jax_worse_fraction": float(jp > sp),
+        "jax_median": pytest.approx(jp),
+        "scipy_median": pytest.approx(sp),
+    }
+    ident = arrays["jax_identified"][:, :n]
+    rel = np.abs(est[:, :n] / truth[:, :n] - 1)
+    worst = report["jax"]["largest_identified_ratio_error"]
+    assert worst["count"] == ident.sum() and worst["max_abs_relative"] == rel[ident].max()
+    assert rel[worst["world"], worst["joint"]] == rel[ident].max() > 0
+    text = sc.summary(report)
+    assert "random:2 (2 plans, mean" in text and "JAX worse than scipy in" in text
+    assert f"largest ratio error the JAX fit reports identified ({ident.sum()} ratios)" in text
 
 
 def test_outputs_are_all_or_nothing(study, tmp_path, monkeypatch):

@@ -37,7 +37,11 @@ from jaxcomp.cli.study import study
     default="default",
     show_default=True,
     help="default: the paper's plan (~230 s of sweeps); short: one +-40 deg sweep per joint "
-    "(~30 s, for CPU runs and CI); or a plan JSON file.",
+    "(~30 s, for CPU runs and CI); random: a plan drawn from --seed (at least half the joints "
+    "in random order, each from a random held pose within the middle 80 % of the ranges, over "
+    "a random 90-200 deg span at a random 10-40 deg/s, drawn again where the model overloads "
+    "an actuator, reaches the floor or touches itself); random:K: K such plans, the worlds cut "
+    "into K contiguous groups, one plan each; or a plan JSON file.",
 )
 @click.option(
     "--every",
@@ -120,7 +124,9 @@ def calibration(
     in all worlds at once on MJX (1 kHz, recorded at 1 kHz / --every), every world is fitted
     with the joint JAX fit (batched on the accelerator) and the first M with the paper's scipy
     fit. DIR/study.json: per-parameter errors against the truth, gravity-current error at
-    random poses, coverage of the reported standard errors, Cramer-Rao comparison, run times;
+    random poses (and how often the JAX fit's, pooled over the joints, is worse than the scipy
+    fit's), the largest error of an identified ratio, coverage of the reported standard
+    errors, Cramer-Rao comparison, run times;
     DIR/errors.png, DIR/coverage.png; DIR/worlds.npz: per-world truth and estimates. Nothing
     is written on error. The same --seed reproduces the numbers (timings aside).
     """

@@ -3,9 +3,10 @@
 N true Gen3 Lite arms are drawn from the seed (``draw_truth``: ratios 20-30 % off nominal,
 friction torques 20-30 % off the paper's, COM offsets of a few mm on every moving link, current
 noise, optional viscous friction); the calibration plan (default:
-``identify.plan_design.default_plan``, the paper's ~230 s of sweeps) is recorded in every
-world at once on MJX (``MjxSimulator``, 1 kHz, float64, worlds sharded over the
-accelerators), every world is fitted with the joint JAX fit in vmapped batches on the
+``identify.plan_design.default_plan``, the paper's ~230 s of sweeps; "random:K": K random
+plans, ``identify.random_plans``, each recorded by a contiguous group of the worlds) is
+recorded in every world at once on MJX (``MjxSimulator``, 1 kHz, float64, worlds sharded over
+the accelerators), every world is fitted with the joint JAX fit in vmapped batches on the
 accelerator (``jax_fit.fit_batch``) and the first M worlds also with the paper's scipy fit
 (``identify.baseline``). The report compares estimates with the truth.
 
@@ -45,23 +46,37 @@ from tqdm.auto import tqdm
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
 from jaxcomp.identify.evaluate import random_poses
+from jaxcomp.identify.jax_fit import BatchFit, fit_model
 from jaxcomp.identify.jax_fit import fit_batch as batch_fit
-from jaxcomp.identify.jax_fit import fit_model
-from jaxcomp.identify.named_plans import check_plan_name, named_plan, short_plan
+from jaxcomp.identify.named_plans import (
+    check_plan_name,
+    named_plan,
+    plan_count,
+    random_count,
+    short_plan,
+)
+from jaxcomp.identify.plan import CalibrationPlan
+from jaxcomp.identify.random_plans import plan_seed
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import json_ready, write_json_atomic
-from jaxcomp.studies.calibration_estimates import Estimates, jax_estimates, scipy_estimates
+from jaxcomp.studies.calibration_estimates import (
+    concat_estimates,
+    jax_estimates,
+    scipy_estimates,
+)
 from jaxcomp.studies.calibration_figures import plot_coverage, plot_errors
 from jaxcomp.studies.calibration_statistics import (
     coverage_summary,
     cramer_rao_summary,
+    gravity_comparison,
     gravity_summary,
+    identified_ratio_error,
     parameter_table,
 )
-from jaxcomp.studies.plan_recording import simulate
-from jaxcomp.studies.plan_signal import plan_segments, plan_signal, start_pose
+from jaxcomp.studies.plan_recording import Simulated, simulate
+from jaxcomp.studies.plan_signal import PlanSignal, plan_segments, plan_signal, start_pose
 from jaxcomp.studies.setup import MODEL, check_out_dir, simulator
-from jaxcomp.studies.truth_draw import TruthSpread, draw_truth
+from jaxcomp.studies.truth_draw import TruthSpread, draw_truth, truth_rows
 
 __all__ = [  # the study, and the stages it composes
     "FIGURES",
@@ -85,6 +100,7 @@ __all__ = [  # the study, and the stages it composes
     "start_pose",
     "study_into",
     "summary",
+    "world_groups",
     "write_outputs",
 ]
 
@@ -101,7 +117,9 @@ class CalibrationSettings:
 
     Attributes:
         worlds: simulated true robots N (>= 1). seed: seed of every draw.
-        plan: "default" (the paper's ~230 s of sweeps), "short" or a plan JSON file.
+        plan: "default" (the paper's ~230 s of sweeps), "short", "random" or "random:K" (K
+            random plans, each recorded by a group of the worlds: ``run_study``) or a plan
+            JSON file.
         every: record every k-th 1 kHz state (10: 100 Hz) for the fits.
         spread: how the true robots differ from the nominal model (``TruthSpread``).
         baseline_sample: also fit the first M worlds with the paper's scipy fit (0: none).
@@ -142,6 +160,55 @@ class CalibrationSettings:
                 isinstance(value, bool) or int(value) != value or value < low
             ):
                 raise InputError(f"{name} must be an integer >= {low}, got {value}")
+        if plan_count(self.plan) > self.worlds:
+            raise InputError(
+                f"--plan {self.plan} needs at least as many --worlds ({self.worlds}) as plans"
+            )
+
+
+def world_groups(worlds: int, count: int) -> list[range]:
+    """The worlds 0..``worlds`` - 1 cut into ``count`` contiguous groups, as even as possible
+    (the first ``worlds % count`` one world longer)."""
+    size, extra = divmod(worlds, count)
+    edges = np.cumsum([0] + [size + (g < extra) for g in range(count)])
+    return [range(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+
+
+class _Group(NamedTuple):
+    """The worlds ``rows`` of a study, which record ``plan``: its signal, the simulation, the
+    joint fits and their estimates."""
+
+    rows: range
+    plan: CalibrationPlan
+    signal: PlanSignal
+    simulated: Simulated | None = None
+    fits: BatchFit | None = None
+
+    def describe(self, seed: int | None) -> dict:
+        """The group's part of the report: worlds [first, stop), plan seed, sweeps, swept
+        joints, speeds (deg/s), 1 kHz steps, duration (s)."""
+        return {
+            "worlds": [self.rows.start, self.rows.stop],
+            "seed": seed,
+            "sweeps": len(self.plan.sweeps),
+            "joints": self.plan.joints,
+            "speeds_deg_s": [math.degrees(s.speed) for s in self.plan.sweeps],
+            "steps": len(self.signal.q_ref),
+            "duration_s": len(self.signal.q_ref) * CONTROL_PERIOD,
+        }
+
+
+def _plan_report(name: str, seed: int, groups: list[_Group]) -> dict:
+    """The report's plan: name, sweeps, 1 kHz steps and duration (s) of the plan (of several
+    plans, the means over the worlds), and each group's (``_Group.describe``)."""
+    random = random_count(name) is not None
+    per_group = [gr.describe(plan_seed(seed, g) if random else None) for g, gr in enumerate(groups)]
+    share = np.array([len(gr.rows) for gr in groups]) / sum(len(gr.rows) for gr in groups)
+    keys = ("sweeps", "steps", "duration_s")
+    if len(groups) == 1:
+        return {"name": name} | {k: per_group[0][k] for k in keys} | {"groups": per_group}
+    mean = {k: float(share @ [d[k] for d in per_group]) for k in keys}
+    return {"name": name} | mean | {"groups": per_group}
 
 
 def run_study(
@@ -151,6 +218,10 @@ def run_study(
     worlds.npz); see the module docstring. ``progress``: show progress bars; ``robot``: the
     ``MODEL`` robot to study, whose simulator (``setup.simulator``) and compiled programs it
     keeps (default: freshly loaded).
+
+    With ``plan`` "random:K" the worlds are cut into K contiguous groups (``world_groups``),
+    group g recording its own random plan (seed ``plan_seed(seed, g)``), simulated and fitted
+    on its own; the truths are drawn for all worlds at once (world w is the same for any K).
     """
     worlds, seed, plan, every = settings.worlds, settings.seed, settings.plan, settings.every
     spread, baseline_sample = settings.spread, settings.baseline_sample
@@ -165,8 +236,11 @@ def run_study(
             ) from None
     t_all = time.perf_counter()
     robot = load_robot(MODEL) if robot is None else robot
-    the_plan = named_plan(robot, plan)
-    signal = plan_signal(the_plan, start_pose(robot))
+    count = plan_count(plan)
+    groups = []
+    for g, rows in enumerate(world_groups(worlds, count)):
+        the_plan = named_plan(robot, plan, seed=seed, group=g)
+        groups.append(_Group(rows, the_plan, plan_signal(the_plan, start_pose(robot))))
     sim = simulator(settings.devices, robot)
     model = fit_model(robot)
     truth = draw_truth(robot, worlds, seed, spread)
@@ -177,44 +251,68 @@ def run_study(
     timing = {"setup": time.perf_counter() - t_all}
 
     bar = tqdm(
-        total=worlds * len(signal.q_ref),
+        total=sum(len(gr.rows) * len(gr.signal.q_ref) for gr in groups),
         unit="step",
         unit_scale=True,
         desc=f"MJX, {worlds} worlds",
         disable=not progress,
     )
-    simulated = simulate(
-        sim,
-        truth,
-        signal,
-        seed=seed,
-        every=every,
-        world_batch=world_batch,
-        keep=keep,
-        progress=bar.update,
-        parallel=parallel,
-    )
+    for g, gr in enumerate(groups):
+        rows = slice(gr.rows.start, gr.rows.stop)
+        simulated = simulate(
+            sim,
+            truth_rows(truth, rows),
+            gr.signal,
+            seed=seed,
+            every=every,
+            world_batch=world_batch,
+            keep=keep,
+            progress=bar.update,
+            parallel=parallel,
+            offset=gr.rows.start,
+        )
+        groups[g] = gr._replace(simulated=simulated)
     bar.close()
-    timing |= simulated.timing
+    for key in groups[0].simulated.timing:
+        timing[key] = sum(gr.simulated.timing[key] for gr in groups)
+    fault_step = np.concatenate([gr.simulated.fault_step for gr in groups])
+    recordings = [r for gr in groups for r in gr.simulated.recordings]
+    world_steps = sum(gr.simulated.world_steps for gr in groups)
 
     t0 = time.perf_counter()
     bar = tqdm(total=worlds, unit="fit", desc="JAX fits", disable=not progress)
-    fits = batch_fit(
-        model, simulated.moments, batch=settings.fit_batch, mesh=mesh, progress=bar.update
-    )
+    for g, gr in enumerate(groups):
+        moments = gr.simulated.moments
+        fits = batch_fit(model, moments, batch=settings.fit_batch, mesh=mesh, progress=bar.update)
+        groups[g] = gr._replace(fits=fits)
     bar.close()
-    timing |= {"fit_jax": time.perf_counter() - t0, "fit_jax_compile": fits.compile_seconds}
-    timing["fit_jax_run"] = fits.seconds
+    timing["fit_jax"] = time.perf_counter() - t0
+    timing["fit_jax_compile"] = sum(gr.fits.compile_seconds for gr in groups)
+    timing["fit_jax_run"] = fit_seconds = sum(gr.fits.seconds for gr in groups)
+    converged = np.concatenate([np.asarray(gr.fits.solution.converged) for gr in groups])
+    noise_estimate = np.concatenate([np.asarray(gr.fits.solution.sigma) for gr in groups])
 
     t0 = time.perf_counter()
     pose_set = random_poses(robot, settings.poses, seed=seed)
-    jax_est = jax_estimates(robot, model, truth, simulated, fits, pose_set)
+    jax_est = concat_estimates(
+        [
+            jax_estimates(
+                robot,
+                model,
+                truth_rows(truth, slice(gr.rows.start, gr.rows.stop)),
+                gr.simulated,
+                gr.fits,
+                pose_set,
+            )
+            for gr in groups
+        ]
+    )
     timing["evaluate"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     bar = tqdm(total=keep, unit="fit", desc="scipy fits", disable=not progress or not keep)
     scipy_est, failed = scipy_estimates(
-        robot, truth, simulated.recordings, jax_est, pose_set, progress=bar.update
+        robot, truth, recordings, jax_est, pose_set, progress=bar.update
     )
     bar.close()
     timing["fit_scipy"] = time.perf_counter() - t0
@@ -222,8 +320,8 @@ def run_study(
     n = model.n
     jax_table = parameter_table(jax_est, 2 * n)
     scipy_table = parameter_table(scipy_est, 2 * n) if keep else {}
-    on_m = Estimates(*(x[:keep] if isinstance(x, np.ndarray) else x for x in jax_est))
-    sigma = fits.solution.sigma[jax_est.ok]
+    on_m = jax_est.rows(slice(0, keep))
+    sigma = noise_estimate[jax_est.ok]
     timing["total"] = time.perf_counter() - t_all
     report = {
         "format": FORMAT,
@@ -231,12 +329,7 @@ def run_study(
         "model": robot.name,
         "seed": seed,
         "worlds": worlds,
-        "plan": {
-            "name": plan,
-            "sweeps": len(the_plan.sweeps),
-            "steps": len(signal.q_ref),
-            "duration_s": len(signal.q_ref) * CONTROL_PERIOD,
-        },
+        "plan": _plan_report(plan, seed, groups),
         "record_every": every,
         "record_rate_hz": 1.0 / (CONTROL_PERIOD * every),
         "truth": dataclasses.asdict(spread) | {"noise": float(truth.current_noise[0])},
@@ -244,15 +337,16 @@ def run_study(
         "devices": [str(d) for d in mesh.devices.flat],
         "world_batch": world_batch,
         "parallel_sweeps": parallel,
-        "faulted_worlds": int((simulated.fault_step >= 0).sum()),
+        "faulted_worlds": int((fault_step >= 0).sum()),
         "jax": {
-            "converged": int(fits.solution.converged.sum()),
+            "converged": int(converged.sum()),
             "used": int(jax_est.ok.sum()),
             "noise_estimate_median": float(np.median(sigma)) if sigma.size else math.nan,
             "parameters": jax_table,
             "gravity_current_error": gravity_summary(
                 np.where(jax_est.ok[:, None], jax_est.gravity, np.nan)
             ),
+            "largest_identified_ratio_error": identified_ratio_error(jax_est, n),
             "on_scipy_worlds": {
                 "parameters": {
                     k: {"rmse": v["rmse"], "relative_rmse": v.get("relative_rmse")}
@@ -260,6 +354,7 @@ def run_study(
                     if k in scipy_table
                 },
                 "gravity_current_error": gravity_summary(on_m.gravity[on_m.ok]),
+                "pooled_gravity_current_error": gravity_comparison(jax_est, scipy_est),
             },
         },
         "scipy": {
@@ -272,25 +367,28 @@ def run_study(
         "cramer_rao": cramer_rao_summary(jax_table, jax_est.names),
         "timing_s": timing,
         "throughput": {
-            "world_steps_per_s": simulated.world_steps / max(timing["simulate_stepping"], 1e-9),
-            "jax_fits_per_min": 60.0 * worlds / max(fits.seconds, 1e-9),
+            "world_steps_per_s": world_steps / max(timing["simulate_stepping"], 1e-9),
+            "jax_fits_per_min": 60.0 * worlds / max(fit_seconds, 1e-9),
             "scipy_fits_per_min": 60.0 * keep / max(timing["fit_scipy"], 1e-9) if keep else None,
         },
     }
     arrays = {
         "parameter_names": np.array(jax_est.names),
+        "plan_group": np.concatenate([np.full(len(gr.rows), g) for g, gr in enumerate(groups)]),
         "truth": jax_est.truth,
         "jax_estimate": jax_est.estimate,
         "jax_std": jax_est.std,
         "jax_identified": jax_est.identified,
-        "jax_converged": fits.solution.converged,
+        "jax_converged": converged,
         "jax_ok": jax_est.ok,
-        "jax_noise_estimate": fits.solution.sigma,
+        "jax_noise_estimate": noise_estimate,
         "jax_gravity_current_error": jax_est.gravity,
+        "jax_gravity_current_error_pooled": jax_est.gravity_pooled,
         "scipy_estimate": scipy_est.estimate,
         "scipy_std": scipy_est.std,
         "scipy_gravity_current_error": scipy_est.gravity,
-        "fault_step": simulated.fault_step,
+        "scipy_gravity_current_error_pooled": scipy_est.gravity_pooled,
+        "fault_step": fault_step,
     }
     return report, arrays
 
@@ -356,9 +454,16 @@ def summary(report: dict) -> str:
             "g-cur scipy",
         )
     )
+    plan = report["plan"]
+    plans = len(plan["groups"])
+    length = (
+        f"{plan['duration_s']:.0f} s"
+        if plans == 1
+        else f"{plans} plans, mean {plan['duration_s']:.0f} s"
+    )
     lines = [
-        f"{report['worlds']} worlds, plan {report['plan']['name']} "
-        f"({report['plan']['duration_s']:.0f} s), {report['backend']} x{len(report['devices'])}; "
+        f"{report['worlds']} worlds, plan {plan['name']} ({length}), "
+        f"{report['backend']} x{len(report['devices'])}; "
         f"RMS relative errors (scipy on the first {report['scipy']['worlds']}), "
         "gravity current: median over worlds",
         head,
@@ -374,6 +479,19 @@ def summary(report: dict) -> str:
             sg["median"][j] if sg["median"] else None,
         ]
         lines.append(f"{j:<6}" + "".join(f"{pct(v):>14}" for v in row))
+    pooled = report["jax"]["on_scipy_worlds"]["pooled_gravity_current_error"]
+    if pooled["worlds"]:
+        lines.append(
+            f"gravity current pooled over joints, {pooled['worlds']} worlds both fits have: JAX "
+            f"worse than scipy in {pct(pooled['jax_worse_fraction'])}; median JAX "
+            f"{pct(pooled['jax_median'])}, scipy {pct(pooled['scipy_median'])}"
+        )
+    worst = report["jax"]["largest_identified_ratio_error"]
+    if worst["count"]:
+        lines.append(
+            f"largest ratio error the JAX fit reports identified ({worst['count']} ratios): "
+            f"{pct(worst['max_abs_relative'])} (world {worst['world']}, joint {worst['joint']})"
+        )
     cov = report["coverage"]["jax"]["identified"]
     t = report["timing_s"]
     lines.append(

@@ -27,7 +27,8 @@ class Estimates(NamedTuple):
     names (P,), units (P,); estimate, truth, std (W, P) (std NaN where none was reported);
     identified (W, P) bool: the data determine the parameter (``jax_fit.identified``); ok (W,)
     bool: the fit converged / did not fail; gravity (W, n): relative RMS gravity-current error
-    per joint at random poses (``evaluate.gravity_current_error_batch``).
+    per joint at random poses (``evaluate.gravity_current_error_batch``); gravity_pooled (W,):
+    the same pooled over the joints (``pooled=True``).
     """
 
     names: list[str]
@@ -38,11 +39,29 @@ class Estimates(NamedTuple):
     identified: np.ndarray
     ok: np.ndarray
     gravity: np.ndarray
+    gravity_pooled: np.ndarray
 
     @property
     def error(self) -> np.ndarray:
         """(W, P) estimate - truth, NaN for failed fits."""
         return np.where(self.ok[:, None], self.estimate - self.truth, np.nan)
+
+    def rows(self, rows: slice) -> "Estimates":
+        """The worlds ``rows``."""
+        return Estimates(*(x[rows] if isinstance(x, np.ndarray) else x for x in self))
+
+
+def concat_estimates(parts: Sequence[Estimates]) -> Estimates:
+    """The worlds of ``parts`` (one method, the same parameters) one after another."""
+    first = parts[0]
+    return Estimates(
+        *(
+            np.concatenate([getattr(p, f) for p in parts])
+            if isinstance(getattr(first, f), np.ndarray)
+            else getattr(first, f)
+            for f in Estimates._fields
+        )
+    )
 
 
 def jax_truth_vector(model: FitModel, truth: BatchTruth) -> np.ndarray:
@@ -94,10 +113,17 @@ def jax_estimates(
         std=np.concatenate([fits.std, np.where(phase_std > 0, phase_std, np.nan)], axis=1),
         identified=np.concatenate([ident, ident[:, :n] & (phase_std > 0)], axis=1),
         ok=np.asarray(sol.converged, bool) & (simulated.fault_step < 0),
-        gravity=gravity_current_error_batch(
-            robot, truth.ratio, truth.com_offset, sol.ratio, fit_com, poses
-        ),
+        **_gravity_errors(robot, truth.ratio, truth.com_offset, sol.ratio, fit_com, poses),
     )
+
+
+def _gravity_errors(robot: Robot, *args: np.ndarray) -> dict[str, np.ndarray]:
+    """``gravity`` and ``gravity_pooled`` of ``Estimates`` (the arguments of
+    ``gravity_current_error_batch``)."""
+    return {
+        "gravity": gravity_current_error_batch(robot, *args),
+        "gravity_pooled": gravity_current_error_batch(robot, *args, pooled=True),
+    }
 
 
 def scipy_estimates(
@@ -129,15 +155,10 @@ def scipy_estimates(
         if progress is not None:
             progress()
     ok = np.isfinite(est).all(axis=1) & jax.ok[:m]  # faulted worlds left out, as for JAX
-    gravity = gravity_current_error_batch(
-        robot,
-        truth.ratio[:m],
-        truth.com_offset[:m],
-        np.where(ok[:, None], est[:, :n], 1.0),
-        com,
-        poses,
-    )
-    gravity[~ok] = np.nan
+    ratio = np.where(ok[:, None], est[:, :n], 1.0)
+    gravity = _gravity_errors(robot, truth.ratio[:m], truth.com_offset[:m], ratio, com, poses)
+    gravity["gravity"][~ok] = np.nan
+    gravity["gravity_pooled"][~ok] = np.nan
     cut = slice(0, 2 * n)
     return (
         Estimates(
@@ -148,7 +169,7 @@ def scipy_estimates(
             std=std,
             identified=jax.identified[:m, cut] & ok[:, None],
             ok=ok,
-            gravity=gravity,
+            **gravity,
         ),
         failed,
     )

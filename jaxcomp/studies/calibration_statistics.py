@@ -98,3 +98,36 @@ def gravity_summary(errors: np.ndarray) -> dict:
             "p95": np.nanpercentile(e, 95, axis=0).tolist(),
             "max": np.nanmax(e, axis=0).tolist(),
         }
+
+
+def gravity_comparison(jax: Estimates, scipy: Estimates) -> dict:
+    """On the worlds both fits have (the scipy sample, fits ok): how often the JAX fit's
+    gravity-current error pooled over the joints (``Estimates.gravity_pooled``) is worse than
+    the scipy fit's, and the medians of both."""
+    j, s = jax.gravity_pooled[: len(scipy.ok)], scipy.gravity_pooled
+    both = jax.ok[: len(scipy.ok)] & scipy.ok & np.isfinite(j) & np.isfinite(s)
+    j, s = j[both], s[both]
+    return {
+        "worlds": int(both.sum()),
+        "jax_worse_fraction": float(np.mean(j > s)) if both.any() else math.nan,
+        "jax_median": float(np.median(j)) if both.any() else math.nan,
+        "scipy_median": float(np.median(s)) if both.any() else math.nan,
+    }
+
+
+def identified_ratio_error(est: Estimates, n: int) -> dict:
+    """The largest |relative error| of the ratios (the first ``n`` parameters) over the fits
+    that are ok and the ratios they report as identified: the value, its world and joint, and
+    how many ratios count."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = np.abs(est.estimate[:, :n] / est.truth[:, :n] - 1)
+    use = est.identified[:, :n] & est.ok[:, None] & np.isfinite(rel)
+    if not use.any():
+        return {"count": 0, "max_abs_relative": math.nan, "world": None, "joint": None}
+    w, j = np.unravel_index(int(np.argmax(np.where(use, rel, -np.inf))), rel.shape)
+    return {
+        "count": int(use.sum()),
+        "max_abs_relative": float(rel[w, j]),
+        "world": int(w),
+        "joint": int(j),
+    }

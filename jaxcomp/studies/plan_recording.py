@@ -142,9 +142,14 @@ def simulate(
     keep: int,
     progress: Callable[[int], None] | None = None,
     parallel: bool = False,
+    offset: int = 0,
 ) -> Simulated:
     """Record ``signal`` in every world of ``truth`` on the ``MjxSimulator`` ``sim``,
     ``world_batch`` worlds per run; see the module docstring for noise and streaming.
+
+    ``offset``: the index in the study of the truth's world 0 (worlds that record another
+    plan come first): the world index of the noise streams, and of ``keep`` (the worlds
+    below it keep their recordings).
 
     ``parallel``: run the plan's K sweeps side by side (``plan_segments``), K MJX worlds per
     true robot, each starting at rest where the sweep before it ends: K times the worlds for
@@ -169,10 +174,12 @@ def simulate(
             keep,
             progress,
             timing,
+            offset,
         )
     for first in range(0, n_worlds, world_batch):
         rows = slice(first, min(first + world_batch, n_worlds))
-        stream = SweepStream(signal, every, first, truth.current_noise[rows], seed, keep)
+        noise = truth.current_noise[rows]
+        stream = SweepStream(signal, every, offset + first, noise, seed, keep)
         done = [0]
         width = rows.stop - rows.start
 
@@ -228,6 +235,7 @@ def _simulate_parallel(
     keep: int,
     progress: Callable[[int], None] | None,
     timing: dict[str, float],
+    offset: int,
 ) -> Simulated:
     """``simulate(parallel=True)``: world w of segment k is MJX world k * B + w of a run."""
     seg = plan_segments(signal, start, every)
@@ -239,7 +247,7 @@ def _simulate_parallel(
         rows = np.arange(first, min(first + world_batch, n_worlds))
         width = len(rows)
         streams = [
-            SweepStream(seg.signals[k], every, first, noise[rows], seed, keep, segment=k)
+            SweepStream(seg.signals[k], every, offset + first, noise[rows], seed, keep, segment=k)
             for k in range(n_seg)
         ]
         done = [0]
