@@ -247,7 +247,8 @@ def test_jax_fit_finds_the_true_robots(study, robot):
         poses,
     )[:, swept]
     assert np.all(nominal > 0.15) and np.all(g < 0.3 * nominal), (g, nominal)
-    np.testing.assert_allclose(arrays["jax_noise_estimate"], 0.05, rtol=0.1)
+    noise = arrays["jax_noise_estimate"][:, swept]  # per joint; unswept joints have none
+    np.testing.assert_allclose(noise, 0.05, rtol=0.1)
     # joints 0 and 5 are not swept: their frictions are not determined, their ratios tied
     assert not ident[:, [0, 5, 6, 11]].any() and ident[:, [1, 2, 7, 8]].all()
     cov = report["coverage"]["jax"]["identified"]
@@ -297,8 +298,9 @@ def test_batched_moments_and_fits_are_the_single_recording_ones(robot, tiny_plan
     np.testing.assert_allclose(fit.solution.friction[0], want.friction, rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(fit.std[0, :6], want.std["ratio"], rtol=1e-6)
     np.testing.assert_allclose(fit.solution.sigma[0], want.diagnostics["current_noise"])
-    swept = np.asarray(want.diagnostics["excitation"], dtype=object) != None  # noqa: E711
-    assert np.all((0.045 < fit.solution.sigma[0]) & (fit.solution.sigma[0] < 0.055) | ~swept)
+    swept = np.array([e is not None for e in want.diagnostics["excitation"]])
+    sigma = fit.solution.sigma[0][swept]
+    assert swept.sum() == 4 and np.all((0.045 < sigma) & (sigma < 0.055)), sigma
 
 
 def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch):
@@ -359,8 +361,12 @@ def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch)
     ident = arrays["jax_identified"][:, :n]
     rel = np.abs(est[:, :n] / truth[:, :n] - 1)
     worst = report["jax"]["largest_identified_ratio_error"]
-    assert worst["count"] == ident.sum() and worst["max_abs_relative"] == rel[ident].max()
-    assert rel[worst["world"], worst["joint"]] == rel[ident].max() > 0
+    assert worst["count"] == ident.sum()
+    if ident.any():  # one mounting: most ratios are confounded with COM offsets
+        assert worst["max_abs_relative"] == rel[ident].max()
+        assert rel[worst["world"], worst["joint"]] == rel[ident].max() > 0
+    else:
+        assert worst["max_abs_relative"] is None
     text = sc.summary(report)
     assert "random:2 (2 plans, mean" in text and "JAX worse than scipy in" in text
     assert f"largest ratio error the JAX fit reports identified ({ident.sum()} ratios)" in text

@@ -42,12 +42,13 @@ def servo_gains(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-world position-servo gains (W, n) as ``Simulator._gains`` computes them.
 
-    Over the zero pose and 63 poses drawn from ``default_rng(0)`` within the joint limits:
+    Over the zero pose and 63 poses drawn from ``default_rng(0)`` within the joint limits
+    (-pi .. pi for a continuous joint):
     I_min = min 1 / (M^-1)_jj, I_max = max M_jj; kp = I_min bandwidth^2 N m/rad,
     kv = 2 sqrt(kp sqrt(I_min I_max)) N m s/rad. ``params``: (W, ...) inertial params;
     ``bandwidth`` rad/s.
     """
-    lim = robot.joint_limits[arm_joint_indices(robot)]
+    lim = np.clip(robot.joint_limits[arm_joint_indices(robot)], -np.pi, np.pi)  # continuous
     rng = np.random.default_rng(0)
     n = lim.shape[0]
     poses = np.stack(
