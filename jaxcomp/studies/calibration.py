@@ -492,6 +492,11 @@ def summary(report: dict) -> str:
             f"largest ratio error the JAX fit reports identified ({worst['count']} ratios): "
             f"{pct(worst['max_abs_relative'])} (world {worst['world']}, joint {worst['joint']})"
         )
+    else:
+        lines.append(
+            "no ratio reported identified (in one mounting each rests partly on the COM prior; "
+            "a recording with a known payload identifies them)"
+        )
     cov = report["coverage"]["jax"]["identified"]
     t = report["timing_s"]
     lines.append(
