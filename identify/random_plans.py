@@ -1,9 +1,9 @@
 """Random calibration plans: held poses, spans, speeds and swept joints drawn from a seed.
 
 They validate the joint fit on plans it was not tuned on (issue 14). ``random_plan(robot,
-seed)`` sweeps a random subset of at least half the current-controlled joints, in random
-order. Each sweep holds the other joints at a pose drawn uniformly within the middle
-``hold_fraction`` (80 %) of their ranges and moves its joint over a random span (``spans``:
+seed)`` sweeps a random subset of at least half the current-controlled joints, each from
+``holds`` (2) held poses, in random order. Each sweep holds the other joints at a pose drawn
+uniformly within the middle ``hold_fraction`` (80 %) of their ranges and moves its joint over a random span (``spans``:
 90-200 deg, or the joint's whole range if shorter) inside its limits less a margin
 (``plan_design.inner_limits``), at a speed U(10, 40) deg/s. Continuous joints count as
 limited to +-pi. A draw the plan's validation refuses, or (``check``) whose sweep or transfer
@@ -37,6 +37,9 @@ HOLD_FRACTION = 0.8
 #: The short plan's transfers (rad/s) and settling (s).
 MOVE_SPEED = math.radians(55.0)
 SETTLE = 0.2
+#: Sweeps of each chosen joint, each from its own held pose (one hold leaves COM directions
+#: unseen that random poses load).
+HOLDS = 2
 #: Draws of a sweep before giving up.
 ATTEMPTS = 100
 #: Draws of the whole plan before giving up.
@@ -78,6 +81,7 @@ def random_plan(
     floor: float = 0.05,
     start: str | Sequence[float] | None = None,
     attempts: int = ATTEMPTS,
+    holds: int = HOLDS,
 ) -> CalibrationPlan:
     """A random calibration plan for ``robot`` from ``seed`` (see the module docstring).
 
@@ -92,6 +96,7 @@ def random_plan(
             ``effort_fraction`` and ``floor`` m), the transfers from ``start`` (a pose name or
             (n,) rad; default ``Robot.idle_pose``, where recording starts).
         attempts: draws of each sweep before the plan is drawn again.
+        holds: sweeps of each chosen joint, each from its own held pose (>= 1).
 
     Returns the validated plan; InputError (naming the last problem) when no draw passes.
     """
@@ -101,6 +106,8 @@ def random_plan(
         raise InputError(f"hold_fraction must be in (0, 1], got {hold_fraction}")
     if int(attempts) < 1:
         raise InputError(f"attempts must be >= 1, got {attempts}")
+    if int(holds) < 1:
+        raise InputError(f"holds must be >= 1, got {holds}")
     limits = plan_limits(robot)
     inner = inner_limits(limits)
     mid, half = limits.mean(axis=1), hold_fraction * (limits[:, 1] - limits[:, 0]) / 2
@@ -137,7 +144,8 @@ def random_plan(
         return f"no admissible sweep of joint {j} ({names[j]}) in {attempts} draws: {problem}"
 
     count = int(rng.integers(math.ceil(n / 2), n + 1))
-    joints = [int(j) for j in rng.permutation(n)[:count]]
+    chosen = [int(j) for j in rng.permutation(n)[:count]]
+    joints = [chosen[k % count] for k in rng.permutation(count * int(holds))]
     # a sweep may start where no transfer can leave (a load near a limit): then draw the
     # whole plan again
     for _ in range(RESTARTS):
