@@ -3,9 +3,9 @@
 They validate the joint fit on plans it was not tuned on (issue 14). ``random_plan(robot,
 seed)`` sweeps a random subset of at least half the current-controlled joints, each from
 ``holds`` (2) held poses, in random order. Each sweep holds the other joints at a pose drawn
-uniformly within the middle ``hold_fraction`` (80 %) of their ranges and moves its joint over a random span (``spans``:
-90-200 deg, or the joint's whole range if shorter) inside its limits less a margin
-(``plan_design.inner_limits``), at a speed U(10, 40) deg/s. Continuous joints count as
+uniformly within the middle ``hold_fraction`` (80 %) of their ranges and moves its joint over
+a random span (``spans``: 90-200 deg, or the joint's whole range if shorter) inside its limits
+less a margin (``plan_design.inner_limits``), at a speed U(10, 40) deg/s. Continuous joints count as
 limited to +-pi. A draw the plan's validation refuses, or (``check``) whose sweep or transfer
 the model refuses (``plan_design.plan_issues``: gravity beyond ``effort_fraction`` of an
 effort limit, the floor, self-contact), is drawn again, up to ``attempts`` times; then the
