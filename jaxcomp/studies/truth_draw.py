@@ -72,8 +72,9 @@ def draw_truth(robot: Robot, worlds: int, seed: int, spread: TruthSpread) -> Bat
     """
     model = fit_model(robot)
     n, nb = model.n, len(robot.link_names)
-    types = sorted(set(model.types))
-    type_of = np.array([types.index(t) for t in model.types])
+    labels = model.types or tuple(f"joint {j}" for j in range(n))  # undeclared: each its own
+    types = sorted(set(labels))
+    type_of = np.array([types.index(t) for t in labels])
 
     def rng(k: int) -> np.random.Generator:
         return np.random.default_rng([seed, TRUTH_STREAM, k])
