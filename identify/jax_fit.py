@@ -109,6 +109,10 @@ DATA_DOMINATED = 1.5
 #: A ratio is reported as identified when it is determined by the data and its relative
 #: standard error is at most this (so that its error stays within 1 % with ~3 sigma).
 RATIO_IDENTIFIED = 0.003
+#: Ratios stay within exp(+-RATIO_RANGE) of the data's scale; a COM offset beyond COM_RANGE
+#: prior widths means a fit that ran away (not converged).
+RATIO_RANGE = float(np.log(1e3))
+COM_RANGE = 100.0
 #: Linear parameters per joint: ratio, friction, viscous.
 _LIN = 3
 #: Scales that make the parameters comparable for the identifiability report.
@@ -566,6 +570,7 @@ def solve(model_key: tuple, st: Stats, max_iter: int = 50) -> Solution:
         H = 0.5 * (H + H.T)
         damp = lam * jnp.diag(jnp.abs(jnp.diag(H))) + 1e-12 * jnp.eye(n)
         cand = rho - jnp.linalg.solve(H + damp, g)
+        cand = jnp.clip(cand, pr.centre - RATIO_RANGE, pr.centre + RATIO_RANGE)
         f, fc = value(rho, s2), value(cand, s2)
         better = fc <= f
         new = jnp.where(better, cand, rho)
@@ -633,7 +638,12 @@ def solve(model_key: tuple, st: Stats, max_iter: int = 50) -> Solution:
         confounded=excited & ~dominated[:n],
         confounded_link=link,
         iterations=it,
-        converged=done & jnp.all(jnp.isfinite(theta)),
+        # a ratio at the edge of its range, or an offset far beyond its prior, is a fit that
+        # ran away along a direction the data barely see: reported as not converged
+        converged=done
+        & jnp.all(jnp.isfinite(theta))
+        & jnp.all(jnp.abs(rho - pr.centre) < RATIO_RANGE - 1e-6)
+        & jnp.all(jnp.abs(theta[3 * n :]) * jnp.sqrt(pr.com) < COM_RANGE),
         rss=jnp.sum(_rss(theta, st, n, K)),
     )
 
