@@ -13,7 +13,7 @@ from jaxcomp.errors import InputError
 from jaxcomp.identify.named_plans import check_plan_name, named_plan, plan_count, random_count
 from jaxcomp.identify.plan import LIMIT_MARGIN, arm_pose
 from jaxcomp.identify.plan_design import inner_limits, plan_issues
-from jaxcomp.identify.random_plans import plan_limits, plan_seed, random_plan
+from jaxcomp.identify.random_plans import HOLDS, plan_limits, plan_seed, random_plan
 from jaxcomp.robot_params import arm_joint_indices
 from jaxcomp.studies.calibration import world_groups
 
@@ -44,8 +44,12 @@ def test_random_plans_are_seeded_within_their_ranges_and_admissible(name, odd_ar
     assert plans[0] != plans[1] != plans[2]
     for plan in plans:
         assert plan.validate(robot) is plan
-        joints = plan.joints
-        assert math.ceil(n / 2) <= len(joints) <= n and len(set(joints)) == len(joints)
+        joints = [s.joint for s in plan.sweeps]
+        chosen = set(joints)
+        assert math.ceil(n / 2) <= len(chosen) <= n
+        assert all(joints.count(j) == HOLDS for j in chosen)  # each from HOLDS held poses
+        holds = {j: [s.hold.tolist() for s in plan.sweeps if s.joint == j] for j in chosen}
+        assert all(h[0] != h[1] for h in holds.values())
         assert plan.move_speed == pytest.approx(math.radians(55)) and plan.settle == 0.2
         assert plan.ramp == 0.25
         for s in plan.sweeps:
