@@ -430,9 +430,10 @@ def _prefit(st: Stats, K: int) -> tuple[jax.Array, jax.Array]:
     return r, rel
 
 
-def _priors(st: Stats, key: tuple) -> tuple[_Priors, jax.Array, jax.Array, jax.Array]:
+def _priors(st: Stats, key: tuple) -> tuple[_Priors, jax.Array, jax.Array, jax.Array, jax.Array]:
     """The priors, scaled to the data (every one means the same in A or mA), each joint's
-    excitation (``_prefit``'s relative standard error), excited flags and current scale (A)."""
+    ``_prefit`` ratio and excitation (its relative standard error), excited flags and current
+    scale (A)."""
     n, K, ratio0, types, com_prior = key
     ratio0 = jnp.asarray(ratio0)
     r_hat, rel = _prefit(st, K)
@@ -472,7 +473,7 @@ def _priors(st: Stats, key: tuple) -> tuple[_Priors, jax.Array, jax.Array, jax.A
         com=jnp.repeat(1.0 / jnp.asarray(com_prior) ** 2, 3),
         held=held,
     )
-    return pr, rel, excited, cs
+    return pr, r_hat, rel, excited, cs
 
 
 def _design(n: int, K: int) -> tuple[jax.Array, jax.Array]:
@@ -503,8 +504,7 @@ def _inner(r: jax.Array, st: Stats, pr: _Priors, s2: jax.Array) -> tuple[jax.Arr
     H = jnp.einsum("jfp,jfg,jgq->pq", A, W, A)
     H = H + jnp.diag(jnp.concatenate([pr.com, pr.friction, pr.viscous]))
     g = jnp.einsum("jfp,jf->p", A, W[:, :, 0] * r[:, None] - st.s / s2[:, None])
-    d = jnp.sqrt(jnp.diag(H))
-    z = -jnp.linalg.solve(H / d[:, None] / d[None, :], g / d) / d
+    z = -_solve_spd(H, g)
     const = jnp.sum((st.c2 - 2 * r * st.s[:, 0] + r**2 * st.S[:, 0, 0]) / s2)
     return z, 0.5 * (const + g @ z)
 
@@ -514,10 +514,17 @@ def _theta(r: jax.Array, z: jax.Array, n: int, K: int) -> jax.Array:
     return jnp.concatenate([r, z[K : K + n], z[K + n :], z[:K]])
 
 
-def _inverse(H: jax.Array) -> jax.Array:
-    """Inverse of a symmetric positive definite matrix, Jacobi-scaled for its conditioning."""
+def _solve_spd(H: jax.Array, b: jax.Array) -> jax.Array:
+    """H^-1 b for a symmetric positive definite H (b a vector or matrix), Jacobi-scaled for
+    its conditioning."""
     d = jnp.sqrt(jnp.maximum(jnp.diag(H), 1e-300))
-    return jnp.linalg.inv(H / d[:, None] / d[None, :]) / d[:, None] / d[None, :]
+    scale = d if b.ndim == 1 else d[:, None]
+    return jnp.linalg.solve(H / d[:, None] / d[None, :], b / scale) / scale
+
+
+def _inverse(H: jax.Array) -> jax.Array:
+    """Inverse of a symmetric positive definite matrix (``_solve_spd``)."""
+    return _solve_spd(H, jnp.eye(H.shape[0]))
 
 
 @partial(jax.jit, static_argnums=0)
@@ -533,7 +540,7 @@ def solve(model_key: tuple, st: Stats, max_iter: int = 50) -> Solution:
     """
     n, K = model_key[0], model_key[1]
     P = _LIN * n + K
-    pr, rel, excited, cs = _priors(st, model_key)
+    pr, r_hat, rel, excited, cs = _priors(st, model_key)
     dof = jnp.maximum(st.samples - _LIN, 1.0)
     floor = (1e-12 * cs) ** 2
 
@@ -559,10 +566,7 @@ def solve(model_key: tuple, st: Stats, max_iter: int = 50) -> Solution:
         z, _ = _inner(jnp.exp(rho), st, pr, s2)
         x = jnp.concatenate([rho, z])
         G, H = jax.grad(full)(x, s2), jax.hessian(full)(x, s2)
-        Hzz = H[n:, n:]
-        d = jnp.sqrt(jnp.maximum(jnp.diag(Hzz), 1e-300))
-        X = jnp.linalg.solve(Hzz / d[:, None] / d[None, :], H[n:, :n] / d[:, None]) / d[:, None]
-        return G[:n], H[:n, :n] - H[:n, n:] @ X
+        return G[:n], H[:n, :n] - H[:n, n:] @ _solve_spd(H[n:, n:], H[n:, :n])
 
     def step(carry):
         rho, lam, it, done, s2 = carry
@@ -583,7 +587,6 @@ def solve(model_key: tuple, st: Stats, max_iter: int = 50) -> Solution:
     def cont(carry):
         return (~carry[3]) & (carry[2] < max_iter) & (carry[1] < 1e12)
 
-    r_hat, _ = _prefit(st, K)
     rho0 = jnp.where(excited, jnp.log(jnp.maximum(r_hat, 1e-300)), pr.centre)
     s2_0 = variances(rho0, jnp.where(st.samples > 0, cs**2, 1.0))
     init = (rho0, jnp.asarray(1e-3), jnp.asarray(0), jnp.asarray(False), s2_0)
