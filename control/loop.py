@@ -566,7 +566,8 @@ def run_control(
             base, the mobile model it names (``mobile_model_name``: "mobile_gen3_lite" for
             "gen3_lite"). The recording's ``joints`` are the arm's.
         watchdog: default: current limit = the arm's limits, saturation at the controller's
-            limit for ``max_saturated_cycles`` cycles, no stale tolerance, loop-stall limit
+            limit for ``max_saturated_cycles`` cycles, the arm's ``stale_tolerance`` (repeated
+            states of lost replies the arm tolerates; 0 for the simulator), loop-stall limit
             20 ms in real time.
         base_velocity_compensation: give the controller the target's velocity relative to
             the moving arm base (from the odometry twist); False: the target's own velocity.
@@ -669,6 +670,7 @@ def _set_up(
         law.limit,
         law.saturation,
         max_saturated_cycles=max_saturated_cycles,
+        stale_cycles=arm.stale_tolerance,
         max_gap=0.02 if realtime else None,
         unit=law.unit,
     )

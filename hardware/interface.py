@@ -260,6 +260,9 @@ class Arm(abc.ABC):
     """
 
     dt = CONTROL_PERIOD
+    #: Consecutive cycles whose state may repeat the previous one without being stale
+    #: feedback (a backend that tolerates lost replies returns the last state for them).
+    stale_tolerance = 0
 
     def __init__(self, joint_names: Sequence[str], limits: ArmLimits, poses: dict | None = None):
         self.joint_names = tuple(joint_names)
@@ -440,8 +443,9 @@ class Arm(abc.ABC):
         """Switch joints' control modes: one mode for all, or one per joint (None = keep).
 
         A joint switched to POSITION holds its measured position, to VELOCITY starts at 0
-        rad/s, to CURRENT starts at its measured current. Switching a joint that moves faster
-        than ``limits.switch_speed`` to CURRENT is refused (InputError, nothing switched).
+        rad/s, to CURRENT starts at its measured current (the latest measurement: a backend
+        may measure while it switches). Switching a joint that moves faster than
+        ``limits.switch_speed`` to CURRENT is refused (InputError, nothing switched).
         """
         self._check_open()
         if isinstance(modes, ControlMode):
@@ -465,6 +469,7 @@ class Arm(abc.ABC):
         if not changes:
             return
         self._switch(changes)
+        state = self._state  # measured during the switch, if the backend did
         for j, m in changes.items():
             self._modes[j] = m
             if m is ControlMode.POSITION:

@@ -1,10 +1,11 @@
 """A Kinova Kortex emulator backed by the simulated arm.
 
 ``KortexEmulator().api`` has the names the Kortex adapter takes from ``kortex_api``
-(transports, router, session manager, ``BaseClient``, ``BaseCyclicClient``,
-``ActuatorConfigClient``, the ``*_pb2`` message modules, ``KServerException``), with the same
-method names and message fields, so the adapter runs unchanged against it. Behind them a
-``Simulator`` plays the Gen3 Lite and the emulator enforces the protocol of
+(transports, router and its send options, session manager, ``BaseClient``,
+``BaseCyclicClient``, ``ActuatorConfigClient``, the ``*_pb2`` message modules,
+``KServerException``, ``KClientException``), with the same method names and message fields
+(assigning any other field raises, as protobuf does), so the adapter runs unchanged against it.
+Behind them a ``Simulator`` plays the Gen3 Lite and the emulator enforces the protocol of
 shared/reference/FIGURES.md:
 
 - configuration calls over TCP port 10000, ``BaseCyclic`` over UDP port 10001, both in an open
@@ -14,13 +15,30 @@ shared/reference/FIGURES.md:
 - a commanded position further than ``following_error_deg`` from the measured one raises a
   following-error fault on that actuator (the arm then holds: it is in fault);
 - ``SetControlMode(CURRENT or VELOCITY)`` before LOW_LEVEL_SERVOING is refused; leaving low-level
-  servoing or closing the session with an actuator not in POSITION mode is a violation.
+  servoing or closing the session with an actuator not in POSITION mode is a violation, and so
+  is a switch to CURRENT or VELOCITY in low-level servoing that no hold frame precedes: the
+  last cyclic command before it, received after the previous switch, must start the new mode
+  exactly where the last feedback the host received left the actuator (its measured current,
+  for CURRENT; velocity 0, for VELOCITY; its measured position, for POSITION from another
+  mode). Every switch is logged in ``switches`` (``SwitchRecord``).
+
+It produces what the arm produces: the arm state in ``Feedback.base.active_state`` and
+``GetArmState`` (ARMSTATE_SERVOING_READY, ARMSTATE_SERVOING_LOW_LEVEL once in low-level
+servoing, ARMSTATE_IN_FAULT on any fault), arm-level fault bits (``Base.SafetyIdentifier``) in
+``base.fault_bank_a`` (JOINT_FAULT while an actuator is in fault), configuration calls that
+take ``config_latency`` s (the arm runs on the last cyclic command meanwhile), replies that
+never come (the caller waits its ``timeout_ms`` and gets ``TimeoutError``, as kortex_api's
+future does) and the host's jitter (each send late by up to ``jitter`` s, seen in ``clock()``
+and in the actuators' ``jitter_comm``).
 
 Every refusal is also appended to ``violations``. Units on the wire are Kortex's: positions in
 deg in [0, 360), velocities deg/s, currents A, floats rounded to float32. Time is the
-simulator's (lock step: 1 ms per ``Refresh``); ``clock()`` reads it. Faults can be injected:
-``inject_stall`` (the caller misses cycles), ``inject_stale`` (no new feedback frames),
-``inject_fault`` (an actuator fault bit).
+simulator's (lock step: 1 ms per ``Refresh``); ``clock()`` reads it (plus the host's lateness).
+Injections: ``inject_stall`` (the caller misses cycles), ``inject_stale`` (no new feedback
+frames), ``inject_fault`` (an actuator fault bit), ``inject_arm_fault`` (an arm-level fault),
+``inject_lost`` (lost replies, lost commands, client errors), ``inject_config_timeout``
+(configuration calls without a reply); constructor options draw lost replies at random
+(``lost_reply_rate``) and the jitter (``jitter``, ``seed``).
 """
 
 from __future__ import annotations
@@ -43,10 +61,14 @@ ARM_FAULT = 1 << 7  # a fault the simulated actuator raised (limit, torque, spee
 MAX_TORQUE = 1 << 9
 OVERSPEED = 1 << 11
 INJECTED = 1 << 15
+#: Arm-level fault bits (``base.fault_bank_a``), a few of Kortex's Base.SafetyIdentifier.
+JOINT_FAULT = 0x10
+MAXIMUM_CURRENT = 0x2000
+EMERGENCY_STOP_ACTIVATED = 0x800000
 
 
-class KServerException(Exception):
-    """Raised for a refused request (kortex_api.Exceptions.KServerException's role)."""
+class KException(Exception):
+    """kortex_api.Exceptions.KException's role: an error code and sub-code."""
 
     def __init__(self, message: str, code: int = 1, sub_code: int = 0):
         super().__init__(message)
@@ -57,6 +79,15 @@ class KServerException(Exception):
 
     def get_error_sub_code(self) -> int:
         return self.sub_code
+
+
+class KServerException(KException):
+    """Raised for a request the arm refused (kortex_api's KServerException)."""
+
+
+class KClientException(KException):
+    """Raised on the client side, e.g. a frame that could not be sent (kortex_api's
+    KClientException; not a KServerException)."""
 
 
 # --------------------------------------------------------------------- protobuf look-alikes
@@ -182,12 +213,22 @@ ActuatorFeedback = _message(
     warning_bank_a=0,
     warning_bank_b=0,
 )
-BaseFeedback = _message("BaseFeedback", active_state=0, arm_voltage=0.0, fault_bank_a=0)
+BaseFeedback = _message(
+    "BaseFeedback",
+    active_state=0,
+    arm_voltage=0.0,
+    arm_current=0.0,
+    fault_bank_a=0,
+    fault_bank_b=0,
+    warning_bank_a=0,
+    warning_bank_b=0,
+)
 Command = _message("Command", frame_id=0, actuators=(ActuatorCommand,))
 Feedback = _message("Feedback", frame_id=0, base=BaseFeedback, actuators=(ActuatorFeedback,))
 # Base, ActuatorConfig, Session
 ServoingModeInformation = _message("ServoingModeInformation", servoing_mode=0)
 ControlModeInformation = _message("ControlModeInformation", control_mode=0)
+ArmStateInformation = _message("ArmStateInformation", active_state=0)
 CreateSessionInfo = _message(
     "CreateSessionInfo",
     username="",
@@ -199,7 +240,55 @@ CreateSessionInfo = _message(
 SERVOING_MODES = _Enum(
     UNSPECIFIED_SERVOING_MODE=0, SINGLE_LEVEL_SERVOING=2, LOW_LEVEL_SERVOING=3, BYPASS_SERVOING=4
 )
-ARM_STATES = _Enum(ARMSTATE_UNSPECIFIED=0, ARMSTATE_IN_FAULT=4, ARMSTATE_SERVOING_READY=7)
+#: Common.ArmState (the arm's state in ``Feedback.base.active_state``).
+ARM_STATES = _Enum(
+    ARMSTATE_UNSPECIFIED=0,
+    ARMSTATE_BASE_INITIALIZATION=1,
+    ARMSTATE_IDLE=2,
+    ARMSTATE_INITIALIZATION=3,
+    ARMSTATE_IN_FAULT=4,
+    ARMSTATE_MAINTENANCE=5,
+    ARMSTATE_SERVOING_LOW_LEVEL=6,
+    ARMSTATE_SERVOING_READY=7,
+    ARMSTATE_SERVOING_PLAYING_SEQUENCE=8,
+    ARMSTATE_SERVOING_MANUALLY_CONTROLLED=9,
+    ARMSTATE_RESERVED=255,
+)
+#: Base.SafetyIdentifier: the bits of the arm-level fault and warning banks.
+SAFETY_IDENTIFIERS = _Enum(
+    UNSPECIFIED_BASE_SAFETY_IDENTIFIER=0,
+    FIRMWARE_UPDATE_FAILURE=0x1,
+    EXTERNAL_COMMUNICATION_ERROR=0x2,
+    MAXIMUM_AMBIENT_TEMPERATURE=0x4,
+    MAXIMUM_CORE_TEMPERATURE=0x8,
+    JOINT_FAULT=JOINT_FAULT,
+    CYCLIC_DATA_JITTER=0x20,
+    REACHED_MAXIMUM_EVENT_LOGS=0x40,
+    NO_KINEMATICS_SUPPORT=0x80,
+    BRAKE_REMOVAL_FAILURE=0x100,
+    NETWORK_ERROR=0x200,
+    UNABLE_TO_REACH_POSE=0x400,
+    JOINT_DETECTION_ERROR=0x800,
+    NETWORK_INITIALIZATION_ERROR=0x1000,
+    MAXIMUM_CURRENT=MAXIMUM_CURRENT,
+    MAXIMUM_VOLTAGE=0x4000,
+    MINIMUM_VOLTAGE=0x8000,
+    MAXIMUM_END_EFFECTOR_TRANSLATION_VELOCITY=0x10000,
+    MAXIMUM_END_EFFECTOR_ORIENTATION_VELOCITY=0x20000,
+    MAXIMUM_END_EFFECTOR_TRANSLATION_ACCELERATION=0x40000,
+    MAXIMUM_END_EFFECTOR_ORIENTATION_ACCELERATION=0x80000,
+    MAXIMUM_END_EFFECTOR_TRANSLATION_FORCE=0x100000,
+    MAXIMUM_END_EFFECTOR_ORIENTATION_FORCE=0x200000,
+    MAXIMUM_END_EFFECTOR_PAYLOAD=0x400000,
+    EMERGENCY_STOP_ACTIVATED=EMERGENCY_STOP_ACTIVATED,
+    EMERGENCY_LINE_ACTIVATED=0x1000000,
+    INRUSH_CURRENT_LIMITER_FAULT=0x2000000,
+    NVRAM_CORRUPTED=0x4000000,
+    INCOMPATIBLE_FIRMWARE_VERSION=0x8000000,
+    POWERON_SELF_TEST_FAILURE=0x10000000,
+    DISCRETE_INPUT_STUCK_ACTIVE=0x20000000,
+    ARM_INTO_ILLEGAL_POSITION=0x40000000,
+)
 CONTROL_MODES = _Enum(
     NONE=0, POSITION=1, VELOCITY=2, TORQUE=3, CURRENT=4, CUSTOM=5, TORQUE_HIGH_VELOCITY=6
 )
@@ -232,7 +321,32 @@ class _Injection:
     seconds: float = 0.0
     device: int = 0
     bits: int = 0
+    count: int = 1
+    what: str = ""
     done: bool = False
+
+
+#: What ``inject_lost`` loses: the reply (the command was applied), the command (it never
+#: arrived) or the send itself (a client error at once, nothing sent).
+LOST_KINDS = ("reply", "command", "client")
+
+
+@dataclass(frozen=True)
+class SwitchRecord:
+    """One ``SetControlMode`` the emulator applied.
+
+    Attributes: t (s, emulated time), device (actuator id), mode (ControlMode name),
+    low_level (in LOW_LEVEL_SERVOING), frames (cyclic commands received since the previous
+    switch or servoing change), held (the last of them started the new mode where the host
+    last saw the actuator, see the module docstring; None outside low-level servoing).
+    """
+
+    t: float
+    device: int
+    mode: str
+    low_level: bool
+    frames: int
+    held: bool | None
 
 
 # --------------------------------------------------------------------- the emulator
@@ -243,6 +357,16 @@ class KortexEmulator:
         sim: the simulator playing the arm (default: a fresh ``Simulator("gen3_lite")``).
         following_error_deg: commanded-vs-measured position difference that faults, deg.
         username, password: the credentials ``CreateSession`` accepts.
+        config_latency: s each configuration call (``SetControlMode``, ``SetServoingMode``)
+            takes; the arm runs on the last cyclic command meanwhile. Longer than the caller's
+            ``timeout_ms``: the call times out.
+        servoing_delay: s after ``SetServoingMode(LOW_LEVEL_SERVOING)`` before the arm state
+            reads ARMSTATE_SERVOING_LOW_LEVEL (ARMSTATE_SERVOING_READY until then).
+        jitter: s, each cyclic command reaches the arm up to this late after its 1 ms tick
+            (uniform), as a host's 1 kHz loop does.
+        lost_reply_rate: probability that a ``Refresh``'s reply is lost (the command was
+            applied; the caller waits its timeout).
+        seed: of the jitter and the random losses.
     """
 
     def __init__(
@@ -252,11 +376,30 @@ class KortexEmulator:
         following_error_deg: float = 10.0,
         username: str = "admin",
         password: str = "admin",
+        config_latency: float = 0.0,
+        servoing_delay: float = 0.0,
+        jitter: float = 0.0,
+        lost_reply_rate: float = 0.0,
+        seed: int | None = 0,
     ):
         self.sim = sim if sim is not None else Simulator("gen3_lite")
         if self.sim.n != len(DEVICE_IDS):
             raise ValueError(f"the emulated Gen3 Lite needs 6 arm joints, got {self.sim.n}")
+        for name, value in (
+            ("config_latency", config_latency),
+            ("servoing_delay", servoing_delay),
+            ("jitter", jitter),
+        ):
+            if not (np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a number of s >= 0, got {value}")
+        if not 0 <= lost_reply_rate < 1:
+            raise ValueError(f"lost_reply_rate must be in [0, 1), got {lost_reply_rate}")
         self.following_error_deg = float(following_error_deg)
+        self.config_latency = float(config_latency)
+        self.servoing_delay = float(servoing_delay)
+        self.jitter = float(jitter)
+        self.lost_reply_rate = float(lost_reply_rate)
+        self._rng = np.random.default_rng(seed)
         self._credentials = (username, password)
         self.violations: list[str] = []
         self.servoing_mode = SERVOING_MODES.Value("SINGLE_LEVEL_SERVOING")
@@ -265,12 +408,23 @@ class KortexEmulator:
         self.sessions_closed = 0
         self.connected: set[str] = set()
         self.fault_a = dict.fromkeys(DEVICE_IDS, 0)
+        self.arm_fault_a = 0
         self.last_frame_id: int | None = None
         self.refresh_count = 0
+        self.lost = dict.fromkeys(LOST_KINDS, 0)
+        self.config_timeouts = 0
         self.max_jitter_us = 0
+        self.switches: list[SwitchRecord] = []
         self._injections: list[_Injection] = []
         self._last_feedback: Feedback | None = None
-        self._last_refresh_t: float | None = None
+        self._delivered: Feedback | None = None  # the last feedback the host received
+        self._last_arrival: float | None = None
+        self._late = 0.0  # s the host's next send comes after its tick
+        self._low_level_since = 0.0
+        self._frames_since_switch = 0
+        self._last_command: tuple[np.ndarray, ...] | None = None  # position, velocity, current
+        self._basis: Feedback | None = None  # what the host had received when it sent it
+        self._targets: tuple[np.ndarray, ...] | None = None  # the sim's last targets
         self._frame = 0
         self.api = self._make_api()
 
@@ -288,9 +442,19 @@ class KortexEmulator:
     def low_level(self) -> bool:
         return self.servoing_mode == SERVOING_MODES.Value("LOW_LEVEL_SERVOING")
 
+    @property
+    def arm_state(self) -> int:
+        """The arm's state (Common.ArmState number; ``ARM_STATES.Name`` gives its name)."""
+        if self._in_fault():
+            return ARM_STATES.Value("ARMSTATE_IN_FAULT")
+        if self.low_level and self.sim.t >= self._low_level_since + self.servoing_delay - 1e-9:
+            return ARM_STATES.Value("ARMSTATE_SERVOING_LOW_LEVEL")
+        return ARM_STATES.Value("ARMSTATE_SERVOING_READY")
+
     def clock(self) -> float:
-        """The emulated time, s (advances 1 ms per Refresh, more after a stall)."""
-        return self.sim.t
+        """The host's time, s: the emulated time (1 ms per Refresh, more after a stall, a
+        configuration call or a timeout) plus how late the host's next send comes (jitter)."""
+        return self.sim.t + self._late
 
     # ----------------------------------------------------------------- injections
     def inject_stall(self, at: float, seconds: float) -> None:
@@ -304,6 +468,25 @@ class KortexEmulator:
     def inject_fault(self, at: float, device: int, bits: int = INJECTED) -> None:
         """At ``at`` s actuator ``device`` raises fault bits ``bits`` in fault_bank_a."""
         self._injections.append(_Injection(at, "fault", device=device, bits=bits))
+
+    def inject_arm_fault(self, at: float, bits: int = EMERGENCY_STOP_ACTIVATED) -> None:
+        """At ``at`` s the arm raises the arm-level fault bits ``bits`` (Base.SafetyIdentifier)
+        in ``base.fault_bank_a``: ARMSTATE_IN_FAULT, every actuator holds."""
+        self._injections.append(_Injection(at, "arm_fault", bits=bits))
+
+    def inject_lost(self, at: float, count: int = 1, what: str = "reply") -> None:
+        """The next ``count`` ``Refresh`` calls at or after ``at`` s fail: ``what`` = "reply"
+        (the command is applied, its reply lost), "command" (the command never arrives) or
+        "client" (``KClientException`` at once, nothing sent). A lost reply or command costs
+        the caller its ``timeout_ms`` and raises ``TimeoutError``."""
+        if what not in LOST_KINDS:
+            raise ValueError(f"what must be one of {LOST_KINDS}, got {what!r}")
+        self._injections.append(_Injection(at, "lost", count=int(count), what=what))
+
+    def inject_config_timeout(self, at: float, count: int = 1) -> None:
+        """The next ``count`` configuration calls at or after ``at`` s get no reply (not
+        applied): the caller waits its ``timeout_ms`` and gets ``TimeoutError``."""
+        self._injections.append(_Injection(at, "config_timeout", count=int(count)))
 
     # ----------------------------------------------------------------- protocol helpers
     def _refuse(self, message: str) -> KServerException:
@@ -322,7 +505,37 @@ class KortexEmulator:
         return DEVICE_IDS.index(device_id)
 
     def _in_fault(self) -> bool:
-        return any(self.fault_a.values())
+        return bool(self.arm_fault_a) or any(self.fault_a.values())
+
+    def _wait(self, seconds: float) -> None:
+        """The arm runs ``seconds`` s on its last targets (no new command arrives)."""
+        steps = int(round(seconds / CONTROL_PERIOD))
+        if steps > 0:
+            self.sim.step(steps)
+            self._sim_faults()
+
+    @staticmethod
+    def _timeout_s(options) -> float:
+        return (10000 if options is None else options.timeout_ms) / 1000.0
+
+    def _take(self, kind: str) -> _Injection | None:
+        """A due count injection of ``kind`` (one of its counts used up), or None."""
+        t = self.sim.t
+        for inj in self._injections:
+            if inj.kind == kind and not inj.done and t >= inj.at - 1e-9:
+                inj.count -= 1
+                inj.done = inj.count <= 0
+                return inj
+        return None
+
+    def _configure(self, what: str, options) -> None:
+        """A configuration call's round trip: ``config_latency`` s, or a timeout."""
+        timeout = self._timeout_s(options)
+        if self._take("config_timeout") is not None or self.config_latency > timeout:
+            self._wait(timeout)
+            self.config_timeouts += 1
+            raise TimeoutError(f"{what}: no reply within {1e3 * timeout:.0f} ms")
+        self._wait(self.config_latency)
 
     # ----------------------------------------------------------------- services
     def set_servoing_mode(self, info) -> None:
@@ -336,6 +549,9 @@ class KortexEmulator:
             self._all_to_position()
         if mode == 3 and not self.low_level:
             self.last_frame_id = None
+            self._low_level_since = self.sim.t
+            self._last_command = self._basis = None
+        self._frames_since_switch = 0
         self.servoing_mode = mode
 
     def _mode_names(self) -> dict[int, str]:
@@ -345,6 +561,22 @@ class KortexEmulator:
         for d in DEVICE_IDS:
             self.control_modes[d] = CONTROL_MODES.Value("POSITION")
         self.sim.hold()
+
+    def _held(self, i: int, device: int, mode: int) -> bool:
+        """A hold frame came since the last switch and its command for actuator index ``i``
+        starts ``mode`` where the host last saw the actuator: CURRENT at the measured current,
+        VELOCITY at 0, POSITION (from another mode) at the measured position."""
+        if self._frames_since_switch < 1 or self._last_command is None or self._basis is None:
+            return False
+        position, velocity, current = self._last_command
+        seen = self._basis.actuators[i]
+        if mode == CONTROL_MODES.Value("CURRENT"):
+            return bool(current[i] == seen.current_motor)
+        if mode == CONTROL_MODES.Value("VELOCITY"):
+            return bool(velocity[i] == 0.0)
+        if self.control_modes[device] == mode:  # POSITION already: the frame holds its target
+            return True
+        return bool(position[i] == seen.position)
 
     def set_control_mode(self, info, device_id: int) -> None:
         j = self._device(device_id)
@@ -358,12 +590,32 @@ class KortexEmulator:
                 f"{CONTROL_MODES.Name(mode)} mode for actuator {device_id} needs "
                 "LOW_LEVEL_SERVOING first"
             )
+        held = self._held(j, device_id, mode) if self.low_level else None
+        self.switches.append(
+            SwitchRecord(
+                self.sim.t,
+                device_id,
+                CONTROL_MODES.Name(mode),
+                self.low_level,
+                self._frames_since_switch,
+                held,
+            )
+        )
+        if held is False and mode != CONTROL_MODES.Value("POSITION"):
+            self.violations.append(
+                f"SetControlMode({CONTROL_MODES.Name(mode)}) for actuator {device_id} without a "
+                "hold frame built from the feedback before it"
+            )
+        self._frames_since_switch = 0
         self.control_modes[device_id] = mode
         if not self._in_fault():
             self.sim.set_modes({j: _TO_MODE[mode]})
+            if self._targets is not None:  # the actuator goes on with the last command
+                self.sim.set_targets(*self._targets)
 
     def clear_faults(self) -> None:
         self.fault_a = dict.fromkeys(DEVICE_IDS, 0)
+        self.arm_fault_a = 0
         self.sim.clear_faults()
         self.sim.set_modes({j: _TO_MODE[self.control_modes[d]] for j, d in enumerate(DEVICE_IDS)})
 
@@ -385,10 +637,30 @@ class KortexEmulator:
                 return inj
         return None
 
-    def refresh(self, command) -> Feedback:
-        """One cyclic exchange: apply the command for 1 ms, return the feedback."""
+    def _loss(self) -> str | None:
+        """How this Refresh fails: an injected loss, a random lost reply, or None."""
+        inj = self._take("lost")
+        if inj is not None:
+            return inj.what
+        if self.lost_reply_rate and self._rng.random() < self.lost_reply_rate:
+            return "reply"
+        return None
+
+    def refresh(self, command, options=None) -> Feedback:
+        """One cyclic exchange: apply the command for 1 ms, return the feedback (or lose it:
+        see ``inject_lost``)."""
         if not self.low_level:
             raise self._refuse("Refresh with a command outside LOW_LEVEL_SERVOING")
+        loss = self._loss()
+        if loss == "client":
+            self.lost["client"] += 1
+            raise KClientException("Couldn't send message frame (injected)")
+        timeout = self._timeout_s(options)
+        if loss == "command":
+            self.lost["command"] += 1
+            self._wait(timeout)
+            self._draw_late()
+            raise TimeoutError(f"Refresh: no reply within {1e3 * timeout:.0f} ms (command lost)")
         fid = command.frame_id
         if len(command.actuators) != len(DEVICE_IDS):
             raise self._refuse(
@@ -406,6 +678,12 @@ class KortexEmulator:
                 raise self._refuse(f"actuator {DEVICE_IDS[i]}: servoing flag (flags=1) not set")
         self.last_frame_id = fid
         self.refresh_count += 1
+        self._frames_since_switch += 1
+        arrival = self.sim.t + self._late
+        last = self._last_arrival
+        jitter = 0 if last is None else int(abs(arrival - last - CONTROL_PERIOD) * 1e6)
+        self._last_arrival = arrival
+        self.max_jitter_us = max(self.max_jitter_us, jitter)
         self._apply(command)
         steps = 1
         stall = self._due("stall")
@@ -416,22 +694,37 @@ class KortexEmulator:
         if fault is not None:
             self.fault_a[fault.device] |= fault.bits
             self.sim.hold()
+        arm_fault = self._due("arm_fault")
+        if arm_fault is not None:
+            self.arm_fault_a |= arm_fault.bits
+            self.sim.hold()
         self._sim_faults()
-        t = self.clock()
-        last = self._last_refresh_t
-        jitter = 0 if last is None else abs(t - last - CONTROL_PERIOD) * 1e6
-        self._last_refresh_t = t
-        self.max_jitter_us = max(self.max_jitter_us, int(jitter))
         if self._due("stale") is not None and self._last_feedback is not None:
-            return copy.deepcopy(self._last_feedback)
-        fb = self.feedback(fid, int(jitter), command)
-        self._last_feedback = fb
+            fb = copy.deepcopy(self._last_feedback)
+        else:
+            fb = self.feedback(fid, jitter, command)
+            self._last_feedback = fb
+        if loss == "reply":
+            self.lost["reply"] += 1
+            self._wait(timeout - CONTROL_PERIOD)
+            self._draw_late()
+            raise TimeoutError(f"Refresh: no reply within {1e3 * timeout:.0f} ms (reply lost)")
+        self._draw_late()
+        self._delivered = fb
         return fb
+
+    def _draw_late(self) -> None:
+        if self.jitter:
+            self._late = float(self._rng.uniform(0.0, self.jitter))
 
     def _apply(self, command) -> None:
         sim = self.sim
-        q_deg = np.rad2deg(sim.data.qpos[sim._qadr])
         cmd_pos = np.array([a.position for a in command.actuators])
+        velocity_deg = np.array([a.velocity for a in command.actuators])
+        current = np.array([a.current_motor for a in command.actuators])
+        self._last_command = (cmd_pos, velocity_deg, current)
+        self._basis = self._delivered
+        q_deg = np.rad2deg(sim.data.qpos[sim._qadr])
         err = _diff_deg(cmd_pos, q_deg)
         for i in np.flatnonzero(np.abs(err) > self.following_error_deg):
             d = DEVICE_IDS[i]
@@ -441,13 +734,13 @@ class KortexEmulator:
         if self._in_fault():
             return
         position = np.deg2rad(q_deg + err)
-        velocity = np.deg2rad([a.velocity for a in command.actuators])
-        current = np.array([a.current_motor for a in command.actuators])
+        velocity = np.deg2rad(velocity_deg)
         over = np.abs(current) > 11.0
         for i in np.flatnonzero(over & sim._is_cur):
             self.fault_a[DEVICE_IDS[i]] |= MAX_TORQUE
             sim.fault(f"actuator {DEVICE_IDS[i]}: current {current[i]:.2f} A beyond 11 A", int(i))
         if not self._in_fault():
+            self._targets = (position, velocity, current)
             sim.set_targets(position, velocity, current)
 
     def _sim_faults(self) -> None:
@@ -464,9 +757,10 @@ class KortexEmulator:
         sim = self.sim
         self._frame = (self._frame + 1) % 65536 if frame_id is None else frame_id
         fb = Feedback(frame_id=self._frame)
-        fb.base.active_state = ARM_STATES.Value(
-            "ARMSTATE_IN_FAULT" if self._in_fault() else "ARMSTATE_SERVOING_READY"
-        )
+        fb.base.active_state = self.arm_state
+        joint_fault = JOINT_FAULT if any(self.fault_a.values()) else 0
+        fb.base.fault_bank_a = self.arm_fault_a | joint_fault
+        fb.base.arm_voltage = 24.0
         q = _wrap_deg(np.rad2deg(sim.data.qpos[sim._qadr]))
         dq = np.rad2deg(sim.data.qvel[sim._dadr])
         torque = sim.applied_torque
@@ -519,10 +813,17 @@ class KortexEmulator:
                 self.active = active
 
         class RouterClientSendOptions:
+            """kortex_api's send options: these three fields and no other."""
+
+            __slots__ = ("andForget", "delay_ms", "timeout_ms")
+
             def __init__(self):
                 self.andForget = False
-                self.delay_before_timeout = 0
-                self.timeout_ms = 0
+                self.delay_ms = 0
+                self.timeout_ms = 10000
+
+            def getTimeoutInSecond(self) -> float:  # noqa: N802
+                return self.timeout_ms / 1000
 
         class SessionManager:
             def __init__(self, router):
@@ -546,24 +847,25 @@ class KortexEmulator:
             def __init__(self, router):
                 self.router = router
 
-            def _check(self, what: str) -> None:
+            def _call(self, what: str, options) -> None:
                 emu._need(self.router.transport, "tcp", TCP_PORT, f"Base.{what}")
+                emu._configure(f"Base.{what}", options)
 
-            def SetServoingMode(self, info) -> None:  # noqa: N802
-                self._check("SetServoingMode")
+            def SetServoingMode(self, info, deviceId=0, options=None):  # noqa: N802, N803
+                self._call("SetServoingMode", options)
                 emu.set_servoing_mode(info)
 
-            def GetServoingMode(self):  # noqa: N802
-                self._check("GetServoingMode")
+            def GetServoingMode(self, deviceId=0, options=None):  # noqa: N802, N803
+                self._call("GetServoingMode", options)
                 return ServoingModeInformation(servoing_mode=emu.servoing_mode)
 
-            def ClearFaults(self) -> None:  # noqa: N802
-                self._check("ClearFaults")
+            def ClearFaults(self, deviceId=0, options=None) -> None:  # noqa: N802, N803
+                self._call("ClearFaults", options)
                 emu.clear_faults()
 
-            def GetArmState(self):  # noqa: N802
-                self._check("GetArmState")
-                return SimpleNamespace(active_state=emu.feedback().base.active_state)
+            def GetArmState(self, deviceId=0, options=None):  # noqa: N802, N803
+                self._call("GetArmState", options)
+                return ArmStateInformation(active_state=emu.arm_state)
 
         class BaseCyclicClient:
             def __init__(self, router):
@@ -571,22 +873,27 @@ class KortexEmulator:
 
             def Refresh(self, command, deviceId=0, options=None):  # noqa: N802, N803
                 emu._need(self.router.transport, "udp", UDP_PORT, "BaseCyclic.Refresh")
-                return emu.refresh(command)
+                return emu.refresh(command, options)
 
             def RefreshFeedback(self, deviceId=0, options=None):  # noqa: N802, N803
                 emu._need(self.router.transport, "udp", UDP_PORT, "BaseCyclic.RefreshFeedback")
-                return emu.feedback()
+                emu._delivered = fb = emu.feedback()
+                return fb
 
         class ActuatorConfigClient:
             def __init__(self, router):
                 self.router = router
 
+            def _call(self, what: str, options) -> None:
+                emu._need(self.router.transport, "tcp", TCP_PORT, f"ActuatorConfig.{what}")
+                emu._configure(f"ActuatorConfig.{what}", options)
+
             def SetControlMode(self, info, deviceId=0, options=None):  # noqa: N802, N803
-                emu._need(self.router.transport, "tcp", TCP_PORT, "ActuatorConfig.SetControlMode")
+                self._call("SetControlMode", options)
                 emu.set_control_mode(info, deviceId)
 
             def GetControlMode(self, deviceId=0, options=None):  # noqa: N802, N803
-                emu._need(self.router.transport, "tcp", TCP_PORT, "ActuatorConfig.GetControlMode")
+                self._call("GetControlMode", options)
                 emu._device(deviceId)
                 return ControlModeInformation(control_mode=emu.control_modes[deviceId])
 
@@ -600,11 +907,14 @@ class KortexEmulator:
             BaseCyclicClient=BaseCyclicClient,
             ActuatorConfigClient=ActuatorConfigClient,
             KServerException=KServerException,
+            KClientException=KClientException,
             Session_pb2=_module("Session_pb2", {}, CreateSessionInfo=CreateSessionInfo),
+            Common_pb2=_module("Common_pb2", {"ArmState": ARM_STATES}),
             Base_pb2=_module(
                 "Base_pb2",
-                {"ServoingMode": SERVOING_MODES, "ArmState": ARM_STATES},
+                {"ServoingMode": SERVOING_MODES, "SafetyIdentifier": SAFETY_IDENTIFIERS},
                 ServoingModeInformation=ServoingModeInformation,
+                ArmStateInformation=ArmStateInformation,
             ),
             BaseCyclic_pb2=_module(
                 "BaseCyclic_pb2",

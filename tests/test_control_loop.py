@@ -340,14 +340,16 @@ def test_unexpected_exception_is_raised_after_the_safe_stop(controller, monkeypa
 
 def test_kortex_adapter_stale_feedback_trips_before_the_adapter(controller, tmp_path):
     """The real-robot adapter on its emulator: frames stop at 0.1 s; the watchdog trips on
-    the first repeated frame (the adapter itself would wait 10 ms) and the session ends in
-    POSITION mode."""
+    the first repeated frame beyond the adapter's tolerance for lost replies (2; the adapter
+    itself would wait 10 ms) and the session ends in POSITION mode."""
     emulator = KortexEmulator()
     arm = KortexArm.emulated(emulator)
     emulator.inject_stale(0.1, 0.05)
     result = run_control(arm, None, controller, "guidance", None, 0.3, tmp_path)
     assert result.kind == "stale_feedback", result.reason
-    assert result.cycles == 100
+    # 1 ms per frame: 8 open the session, 7 switch the six joints (hold frames)
+    assert arm.stale_tolerance == 2
+    assert result.cycles == 100 - 8 - 7 + 2
     assert all(m is ControlMode.POSITION for m in arm.modes) and emulator.all_position
     arm.close()
     assert not emulator.low_level and not emulator.session_open and not emulator.violations
