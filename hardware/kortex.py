@@ -389,16 +389,15 @@ class KortexArm(Arm):
         return self._refresh()
 
     def _hold(self, switching, safe: bool = False) -> str | None:
-        """A hold frame, sent again while its reply is lost (up to ``MAX_CONSECUTIVE_LOST``).
-        Not ``safe``: HardwareFault when none got through or its feedback shows a fault;
-        ``safe``: returns the error (None if one got through) and ignores faults."""
-        error = None
-        for _ in range(MAX_CONSECUTIVE_LOST):
-            error = self._hold_frame(switching)
-            if error is None or self.lost_in_a_row == 0:
-                break
+        """A hold frame. Not ``safe``: sent again while its reply is lost (up to
+        ``MAX_CONSECUTIVE_LOST`` in a row); HardwareFault when none got through or its
+        feedback shows a fault. ``safe`` (on the way out, maybe with the link down): sent
+        once, faults ignored; returns why it did not get through (None if it did)."""
+        error = self._hold_frame(switching)
         if safe:
             return error
+        while error is not None and 0 < self.lost_in_a_row < MAX_CONSECUTIVE_LOST:
+            error = self._hold_frame(switching)
         if error is not None:
             raise HardwareFault(f"no hold frame got through: {error}", (error,))
         faults = self._fault_bits(self._fb) + self._arm_faults(self._fb, self._in_low_level)

@@ -223,7 +223,6 @@ def control(
     from jaxcomp.control.loop import (
         ArmMount,
         arm_model,
-        arm_params,
         mobile_model_name,
         run_control,
     )
@@ -260,6 +259,27 @@ def control(
     params = RobotParams.load(params_file) if params_file is not None else None
     chosen = _chosen_joints(joints, params, params_file)
 
+    def make_controller(arm_robot, params):
+        if law == "velocity":
+            controller = make_velocity_controller(arm_robot)
+        else:
+            gains = impedance_gains(arm_robot, preset, **changes)
+            controller = make_impedance_controller(arm_robot, params, gains)
+            click.echo(_describe_gains(preset, controller), err=True)
+        click.echo(f"compiling the controller for {arm_robot.name} ...", err=True)
+        if hasattr(controller, "compile"):
+            controller.compile()
+        return controller
+
+    controller = None
+    if backend == "kortex":
+        # the params and the controller are checked (and compiled) before the arm is
+        # touched: nothing implausible reaches it, and no compile runs while it servos
+        gen3 = load_robot("gen3_lite")
+        mobile = load_robot(mobile_model_name(gen3))
+        checked = None if params is None else _arm_params(params, params_file, mobile, gen3)
+        controller = make_controller(gen3, checked)
+
     arm = base = sim = None
     try:
         if backend == "sim":
@@ -293,22 +313,9 @@ def control(
                 robot = load_robot(mobile_model_name(robot))
         arm_robot = arm_model(robot)
         if params is not None:
-            names = {r.name for r in (robot, arm_robot)} | {r.reference for r in (robot, arm_robot)}
-            if params.model not in names:  # a fit names the model as its recording does
-                raise InputError(
-                    f"{params_file}: the params are for model {params.model!r}, the robot is "
-                    f"{robot.name!r}"
-                )
-            params = arm_params(params, arm_robot)
-        if law == "velocity":
-            controller = make_velocity_controller(arm_robot)
-        else:
-            gains = impedance_gains(arm_robot, preset, **changes)
-            controller = make_impedance_controller(arm_robot, params, gains)
-            click.echo(_describe_gains(preset, controller), err=True)
-        click.echo(f"compiling the controller for {arm_robot.name} ...", err=True)
-        if hasattr(controller, "compile"):
-            controller.compile()
+            params = _arm_params(params, params_file, robot, arm_robot)
+        if controller is None:
+            controller = make_controller(arm_robot, params)
         if sim is not None:
             for start, length, force in push_list:
                 sim.push(sim.t + start, length, force)
@@ -338,6 +345,20 @@ def control(
     click.echo(result.summary())
     if not result.ok:
         raise SystemExit(1)
+
+
+def _arm_params(params, params_file: str | None, robot, arm_robot):
+    """``params`` for the arm-alone model ``arm_robot`` of ``robot``, checked as the
+    controller checks them (``RobotParams.check``); InputError when they name another model
+    (a fit names the model as its recording does: by name or by file) or do not fit."""
+    from jaxcomp.control.loop import arm_params
+
+    names = {r.name for r in (robot, arm_robot)} | {r.reference for r in (robot, arm_robot)}
+    if params.model not in names:
+        raise InputError(
+            f"{params_file}: the params are for model {params.model!r}, the robot is {robot.name!r}"
+        )
+    return arm_params(params, arm_robot).check(arm_robot)
 
 
 def _chosen_joints(text: str | None, params, params_file: str | None) -> list[str] | None:
