@@ -79,6 +79,13 @@ from jaxcomp.cli.study import study
     help="True viscous friction U(0, v) N m s/rad per joint.",
 )
 @click.option(
+    "--com-prior",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=None,
+    help="The JAX fit's prior standard deviation of every link's COM offset per axis, m "
+    "(default: as jaxcomp fit: the model's, else 10 %% of each link's radius of gyration).",
+)
+@click.option(
     "--poses", type=int, default=1000, show_default=True, help="Poses of the gravity error."
 )
 @click.option(
@@ -111,6 +118,7 @@ def calibration(
     com_offset: float,
     model_error: tuple[float, float],
     viscous: float,
+    com_prior: float | None,
     poses: int,
     world_batch: int | None,
     fit_batch: int | None,
@@ -149,6 +157,7 @@ def calibration(
         fit_batch=fit_batch,
         poses=poses,
         parallel=parallel,
+        com_prior=com_prior,
     )
     from jaxcomp.robot import load_robot
 

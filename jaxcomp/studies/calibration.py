@@ -131,6 +131,7 @@ class CalibrationSettings:
         parallel: the plan's sweeps side by side (``simulate``; None: on an accelerator,
             where a few thousand worlds leave it idle; on the CPU, where steps cost in
             proportion to the worlds, the sweeps run in turn).
+        com_prior: m, the JAX fit's COM prior on every link (None: ``fit_model``'s default).
     """
 
     worlds: int
@@ -144,6 +145,7 @@ class CalibrationSettings:
     fit_batch: int | None = None
     poses: int = 1000
     parallel: bool | None = None
+    com_prior: float | None = None
 
     def __post_init__(self) -> None:
         check_plan_name(self.plan)
@@ -242,7 +244,7 @@ def run_study(
         the_plan = named_plan(robot, plan, seed=seed, group=g)
         groups.append(_Group(rows, the_plan, plan_signal(the_plan, start_pose(robot))))
     sim = simulator(settings.devices, robot)
-    model = fit_model(robot)
+    model = fit_model(robot, settings.com_prior)
     truth = draw_truth(robot, worlds, seed, spread)
     backend, mesh = jax.default_backend(), sim.mesh
     world_batch = world_batch or (worlds if backend != "cpu" else mesh.size)
