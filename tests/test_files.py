@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import io
 import json
 import math
 import os
@@ -21,6 +22,7 @@ import re
 import shutil
 import subprocess
 import sys
+from contextlib import redirect_stderr
 from dataclasses import replace
 from pathlib import Path
 
@@ -115,38 +117,17 @@ def interrupted(plan_file, tmp_path_factory) -> Path:
     """`jaxcomp calibrate --plan PLAN --out D` stopped by Ctrl-C as its second sweep starts
     (a sweep is 3 moves: travel, up, down): D as the user finds it."""
     out = tmp_path_factory.mktemp("interrupted") / "cal"
-    with pytest.MonkeyPatch.context() as mp:
+    args = ["jaxcomp", "calibrate", "--plan", str(plan_file), "--out", str(out)]
+    with pytest.MonkeyPatch.context() as mp, redirect_stderr(io.StringIO()) as err:
         _interrupt_at_move(mp, 3)
-        capture = _Capture()
-        with capture:
-            code, err = capture.main(mp, ["calibrate", "--plan", plan_file, "--out", out])
-    assert code == 130, err
-    assert f"interrupted: the finished sweeps are in {out / 'recording.npz'}" in err
-    assert "Traceback" not in err
-    return out
-
-
-class _Capture:
-    """stderr of a ``main()`` call made outside a test function (a module fixture)."""
-
-    def __enter__(self):
-        import io
-
-        self._err, sys.stderr = sys.stderr, io.StringIO()
-        return self
-
-    def __exit__(self, *exc):
-        sys.stderr = self._err
-
-    def main(self, mp, args) -> tuple[int, str]:
-        mp.setattr("sys.argv", ["jaxcomp", *map(str, args)])
+        mp.setattr("sys.argv", args)
         mp.setenv("JAXCOMP_CACHE", "off")
-        try:
+        with pytest.raises(SystemExit) as exc:
             jaxcomp.cli.main()
-            code = 0
-        except SystemExit as exc:
-            code = exc.code
-        return code, sys.stderr.getvalue()
+    assert exc.value.code == 130, err.getvalue()
+    assert f"interrupted: the finished sweeps are in {out / 'recording.npz'}" in err.getvalue()
+    assert "Traceback" not in err.getvalue()
+    return out
 
 
 @pytest.fixture()
