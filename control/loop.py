@@ -74,7 +74,8 @@ from jaxcomp.control.timing import CycleTimer, wait_until
 from jaxcomp.control.trajectory import Static, Trajectory, TrajectorySpec, parse_trajectory
 from jaxcomp.control.velocity import VelocityController
 from jaxcomp.control.watchdog import FAULT, Watchdog, WatchdogTrip, safe_stop
-from jaxcomp.errors import InputError, ModelError
+from jaxcomp.errors import FileError, InputError, ModelError
+from jaxcomp.files import file_problem
 from jaxcomp.hardware.interface import Arm, ArmCommand, ArmState, Base, ControlMode, HardwareFault
 from jaxcomp.recording import Recording, RecordingWriter
 from jaxcomp.robot import Robot, load_robot
@@ -467,6 +468,8 @@ class ControlResult:
         out_dir, recording_path, timing_path: where the files are.
         timing: ``CycleTimer.summary()``.
         stop_errors: problems met while stopping (empty when the stop was clean).
+        file_error: why the recording or timing.json could not be written (read-only, full
+            disk), None when they were.
     """
 
     kind: str
@@ -482,6 +485,7 @@ class ControlResult:
     timing_path: Path | None = None
     timing: dict = field(default_factory=dict)
     stop_errors: list[str] = field(default_factory=list)
+    file_error: str | None = None
     trajectory: str = ""
     mode: str = ""
 
@@ -981,6 +985,9 @@ def _finish(run: _Run, end: _End) -> ControlResult:
     try:
         result.recording = recorder.close()
         result.recording_path = out / RECORDING
+    except (OSError, FileError) as exc:  # read-only, full disk
+        result.file_error = f"the recording was not written: {file_problem(exc)}"
+        log.error(result.file_error)
     except Exception as exc:  # noqa: BLE001 - e.g. too few samples to make a recording
         result.stop_errors.append(f"recording not joined: {exc}")
         log.error("recording not joined: %s", exc)
@@ -999,6 +1006,8 @@ def _finish(run: _Run, end: _End) -> ControlResult:
             }
         }
         result.timing_path = timer.dump(out / TIMING, run_info)
+    except (OSError, FileError) as exc:
+        result.file_error = result.file_error or f"{TIMING} was not written: {file_problem(exc)}"
     except Exception as exc:  # noqa: BLE001
         result.stop_errors.append(f"timing.json not written: {exc}")
     return result

@@ -66,7 +66,7 @@ def run_arm(model: str, where: Path, plan: str, duration: float) -> dict:
     row: dict = {"arm": name}
     try:
         row["calibrate_s"] = _jaxcomp(
-            ["calibrate", "--model", model, "--out", str(cal), "--plan", plan],
+            ["calibrate", "--model", model, "--out", str(cal), "--plan", plan, "--overwrite"],
             where / f"{name}_calibrate.log",
         )
         truth = json.loads((cal / "truth.json").read_text())
@@ -81,7 +81,8 @@ def run_arm(model: str, where: Path, plan: str, duration: float) -> dict:
             row[f"ratio_error_{method}"] = float(err.max())
         args = ["control", "--mode", "tracking", "--model", model, "--params"]
         args += [str(cal / "params.json"), "--trajectory", CIRCLE, "--duration", str(duration)]
-        row["control_s"] = _jaxcomp([*args, "--out", str(ctl)], where / f"{name}_control.log")
+        args += ["--overwrite", "--out", str(ctl)]  # --out of an earlier run: replaced
+        row["control_s"] = _jaxcomp(args, where / f"{name}_control.log")
         with np.load(ctl / "recording.npz") as rec:
             t = rec["t"] - rec["t"][0]
             err = np.linalg.norm(rec["ee"] - rec["target"], axis=1)[t >= SETTLE]

@@ -209,14 +209,22 @@ class TrueRobot:
         return cls(params, noise, viscous, seed)
 
     # ----------------------------------------------------------------- files
-    def save(self, path: str | Path) -> Path:
-        """Write the truth as a params JSON file (atomic) with its noise and viscous keys."""
-        extra = {
+    def _extra(self) -> dict:
+        """What a truth adds to its params: current noise (A), viscous friction, seed."""
+        return {
             "current_noise": self.current_noise,
             "viscous": None if self.viscous is None else self.viscous.tolist(),
             "seed": self.seed,
         }
-        return self.params.save(path, extra=extra)
+
+    def to_dict(self) -> dict:
+        """The truth file's contents (``save``): its params' JSON and the noise and viscous
+        keys."""
+        return self.params.to_dict() | self._extra()
+
+    def save(self, path: str | Path) -> Path:
+        """Write the truth as a params JSON file (atomic) with its noise and viscous keys."""
+        return self.params.save(path, extra=self._extra())
 
     @classmethod
     def load(cls, path: str | Path, robot: Robot | None = None) -> TrueRobot:

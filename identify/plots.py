@@ -20,6 +20,7 @@ import numpy as np  # noqa: E402
 
 from jaxcomp import dynamics  # noqa: E402
 from jaxcomp.current import sweep_current  # noqa: E402
+from jaxcomp.files import save_figure  # noqa: E402
 from jaxcomp.identify.bins import bin_sweeps  # noqa: E402
 from jaxcomp.recording import Recording  # noqa: E402
 from jaxcomp.robot_params import RobotParams, arm_joint_indices  # noqa: E402
@@ -85,7 +86,7 @@ def plot_sweeps(rec: Recording, fits: Mapping[str, RobotParams], path: str | Pat
     axes[0, 0].legend(fontsize=7)
     fig.suptitle("Calibration sweeps: measured current and fitted models (Eq. 13)")
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_batch(results: Sequence[RobotParams], path: str | Path) -> Path:
@@ -109,12 +110,4 @@ def plot_batch(results: Sequence[RobotParams], path: str | Path) -> Path:
     b.set_ylabel("estimate / median")
     b.set_title("ratio r and friction loss l")
     fig.tight_layout()
-    return _save(fig, path)
-
-
-def _save(fig, path: str | Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

@@ -17,7 +17,7 @@ shifted, when needed, to continue after the samples already recorded.
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -25,14 +25,23 @@ import numpy as np
 
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
+from jaxcomp.files import reading, writing
 from jaxcomp.hardware.interface import Arm, ArmState
 from jaxcomp.identify.plan import CalibrationPlan, plan_from_dict
-from jaxcomp.recording import Recording, RecordingWriter, validate
+from jaxcomp.recording import (
+    Recording,
+    RecordingWriter,
+    read_manifest,
+    setting_differences,
+    validate,
+)
 from jaxcomp.robot import Robot, load_robot
-from jaxcomp.robot_params import arm_joint_indices, write_json_atomic
+from jaxcomp.robot_params import arm_joint_indices, json_ready, write_json_atomic
 
 #: The plan being recorded, kept beside the writer's part files to check a resume.
 PLAN_FILE = "plan.json"
+#: The run's other settings (``record(settings=)``), kept there too to check a resume.
+SETTINGS_FILE = "settings.json"
 #: Recorded direction (+1, -1; 0 outside sweeps) of each kind of move of ``CalibrationPlan.moves``.
 MOVE_DIRECTION = {"via": 0, "start": 0, "up": +1, "down": -1}
 
@@ -62,6 +71,63 @@ def _check_metadata(
     validate(data, "record")
 
 
+def _read_json(path: Path) -> Any:
+    """The JSON in ``path``; None when it is missing or not JSON."""
+    if not path.is_file():
+        return None
+    with reading(path):
+        text = path.read_text()
+    try:
+        return json.loads(text)
+    except ValueError:
+        return None
+
+
+def _recorded_model(model: str | Robot) -> tuple[Robot, str, tuple[str, ...]]:
+    """The robot, the recording's ``model`` field and its current-controlled joints."""
+    robot = load_robot(model)
+    name = robot.reference if isinstance(model, Robot) else str(model)
+    return robot, name, tuple(robot.joint_names[j] for j in arm_joint_indices(robot))
+
+
+def check_resume(
+    path: str | Path,
+    plan: CalibrationPlan,
+    model: str | Robot,
+    settings: Mapping[str, Any] | None = None,
+) -> list[int]:
+    """The plan sweeps an interrupted ``record`` into ``path`` finished (empty when there is
+    nothing to resume), after checking that it recorded the same ``plan`` on the same
+    ``model`` (and joints) with the same ``settings`` (as ``record`` takes them);
+    InputError naming what differs otherwise. Reads only."""
+    path = Path(path)
+    manifest = read_manifest(path)
+    if manifest is None:
+        return []
+    _, name, joints = _recorded_model(model)
+    parts = path.with_name(path.name + ".parts")
+    meta = manifest["meta"]
+    now: dict[str, Any] = {"model": name, "joints": list(joints)}
+    earlier: dict[str, Any] = {k: meta.get(k) for k in now}
+    data = _read_json(parts / PLAN_FILE)
+    try:
+        earlier_plan = plan_from_dict(data) if data is not None else None
+    except InputError:
+        earlier_plan = None
+    stored = _read_json(parts / SETTINGS_FILE)
+    if settings is not None and isinstance(stored, dict):  # older runs kept no settings
+        earlier.update(stored)
+        now.update(json.loads(json.dumps(json_ready(dict(settings)))))
+    said = ["the plan differs"] if earlier_plan != plan else []
+    said += [d for d in [setting_differences(earlier, now)] if d]
+    if said:
+        raise InputError(
+            f"cannot resume {path}: {'; '.join(said)} (start over without resuming, or into "
+            "another folder)"
+        )
+    return [int(i) for i in manifest["completed"]]
+
+
 def record(
     arm: Arm,
     plan: CalibrationPlan,
@@ -73,6 +139,7 @@ def record(
     payload_com: Sequence[float] | None = None,
     progress: bool = True,
     resume: bool = False,
+    settings: Mapping[str, Any] | None = None,
 ) -> Recording:
     """Record ``plan`` on ``arm`` into the recording ``path`` (``.npz``) and return it.
 
@@ -87,19 +154,21 @@ def record(
             end-effector frame (recording metadata; None leaves the field out).
         progress: show a tqdm bar over the plan's samples.
         resume: keep the sweeps an interrupted ``record`` of the same plan to ``path``
-            finished, and record only the others.
+            finished, and record only the others (``check_resume``: InputError when the
+            plan, model, joints or settings differ).
+        settings: whatever else must match for a resume (e.g. the simulator's seed and
+            truth), a JSON-able mapping kept beside the part files.
 
-    On any exception (KeyboardInterrupt included) the finished sweeps stay on disk and the
-    exception propagates; ``jaxcomp.recording.recover(path)`` joins what was written.
+    On any exception (KeyboardInterrupt included) the finished sweeps are joined into
+    ``path``, a loadable recording, and stay in the part files for a resume; the exception
+    propagates. ``jaxcomp.recording.recover(path)`` also joins the unfinished sweep.
     Raises InputError before moving for a plan, model or metadata that does not fit.
     """
-    robot = load_robot(model)
-    model = robot.reference if isinstance(model, Robot) else str(model)
-    joints = tuple(robot.joint_names[j] for j in arm_joint_indices(robot))
+    robot, name, joints = _recorded_model(model)
     n = len(joints)
     if arm.n != n:
         raise InputError(
-            f"the arm has {arm.n} joints but model {model!r} has {n} current-controlled joints"
+            f"the arm has {arm.n} joints but model {name!r} has {n} current-controlled joints"
         )
     if not isinstance(plan, CalibrationPlan):
         raise InputError(f"plan must be a CalibrationPlan, got {type(plan).__name__}")
@@ -111,11 +180,13 @@ def record(
             f"the plan moves at up to {max(speeds):.3g} rad/s, beyond the arm's speed limit "
             f"{vmax:.3g} rad/s"
         )
-    _check_metadata(model, joints, gravity, payload_mass, payload_com)
+    _check_metadata(name, joints, gravity, payload_mass, payload_com)
+    if resume:
+        check_resume(path, plan, model, settings)
 
     writer = RecordingWriter(
         path,
-        str(model),
+        name,
         n,
         gravity=gravity,
         payload_mass=payload_mass,
@@ -123,19 +194,11 @@ def record(
         joints=joints,
         resume=resume,
     )
-    plan_file = writer.parts / PLAN_FILE
-    if plan_file.is_file():
-        try:
-            earlier = plan_from_dict(json.loads(plan_file.read_text()))
-        except (ValueError, InputError):
-            earlier = None
-        if earlier != plan:
-            raise InputError(
-                f"cannot resume {writer.path}: it was recorded with a different plan "
-                f"({plan_file}); record without resume to start over"
-            )
-    else:
-        write_json_atomic(plan_file, plan.to_dict())
+    for file, data in ((PLAN_FILE, plan.to_dict()), (SETTINGS_FILE, settings)):
+        where = writer.parts / file
+        if data is not None and not where.is_file():
+            with writing(where):
+                write_json_atomic(where, json_ready(dict(data)))
     done = {int(i) for i in writer.completed}
     todo = [i for i in range(len(plan.sweeps)) if i not in done]
 
@@ -178,7 +241,11 @@ def record(
     except BaseException:
         try:  # what the open sweep recorded, for recover(); resume discards it
             writer.flush()
-        except Exception:  # the original exception matters more
+        except Exception:  # noqa: BLE001, S110 - the original exception matters more
+            pass
+        try:  # the finished sweeps as a loadable recording
+            writer.save_completed()
+        except Exception:  # noqa: BLE001, S110
             pass
         raise
     finally:

@@ -11,3 +11,8 @@ class ModelError(JaxcompError, ValueError):
 
 class InputError(JaxcompError, ValueError):
     """A value passed to jaxcomp that is malformed: wrong shape, NaN, unknown name."""
+
+
+class FileError(InputError):
+    """A file or folder given that cannot be read or written: locked by another run,
+    read-only, a full disk, or one that would replace what must be kept."""

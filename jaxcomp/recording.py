@@ -17,17 +17,17 @@ one ``InputError`` naming the field; nothing is silently dropped.
 
 ``RecordingWriter`` writes a recording incrementally: samples go to numbered part files in
 ``<path>.parts/`` (each written atomically, at least every ``flush_every`` samples), grouped
-into segments; ``close()`` joins them into ``<path>`` atomically. After a crash,
+into segments; ``close()`` joins them into ``<path>`` atomically. After an interruption,
+``save_completed()`` joins the completed segments into ``<path>`` (the parts stay),
 ``RecordingWriter(path, ..., resume=True)`` keeps every completed segment, and
-``recover(path)`` joins whatever was written.
+``recover(path)`` joins whatever was written. Every file is written atomically
+(``jaxcomp.files``); one that cannot be written raises one ``FileError``.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +37,7 @@ import numpy as np
 
 from jaxcomp.constants import STANDARD_GRAVITY
 from jaxcomp.errors import InputError, JaxcompError, ModelError
+from jaxcomp.files import atomic_output, reading, writing
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import arm_joint_indices, write_json_atomic
 
@@ -110,16 +111,23 @@ class Recording:
 
 def _save_npz(path: str | Path, arrays: Mapping[str, Any]) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.npz", dir=path.parent)
-    os.close(fd)
-    try:
-        np.savez(tmp, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_output(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)  # to the file itself: no ".npz" appended to other names
     return path
+
+
+def setting_differences(earlier: Mapping[str, Any], now: Mapping[str, Any]) -> str:
+    """What differs between two settings mappings, for people: "seed 0 then, 7 now; the
+    truth differs" (a scalar setting: both values; a list or mapping: that it differs)."""
+    said = []
+    for key in sorted(set(earlier) | set(now), key=str):
+        a, b = earlier.get(key), now.get(key)
+        if a == b:
+            continue
+        scalar = all(v is None or isinstance(v, str | int | float | bool) for v in (a, b))
+        verb = "differ" if str(key).endswith("s") else "differs"
+        said.append(f"{key} {a!r} then, {b!r} now" if scalar else f"the {key} {verb}")
+    return "; ".join(said)
 
 
 def _numeric(data: Mapping, name: str, shape: tuple, kind: str = "float") -> np.ndarray:
@@ -357,26 +365,31 @@ class RecordingWriter:
         self._count = 0
         #: time (s) of the last sample written or buffered; None before the first
         self.last_t: float | None = None
-        if resume and (self.parts / "manifest.json").is_file():
-            manifest = json.loads((self.parts / "manifest.json").read_text())
-            if manifest["meta"] != json.loads(json.dumps(self.meta)):
-                raise InputError(
-                    f"cannot resume {self.path}: it was started with different settings "
-                    f"({manifest['meta']})"
-                )
+        manifest = read_manifest(self.path) if resume else None
+        if manifest is not None:
+            differ = setting_differences(manifest["meta"], json.loads(json.dumps(self.meta)))
+            if differ:
+                raise InputError(f"cannot resume {self.path}: {differ}")
             self.completed = manifest["completed"]
             self._files = manifest["files"]
-            for name in self._files:
-                with np.load(self.parts / name) as part:
-                    self._count += int(part["t"].shape[0])
-                    self.last_t = float(part["t"][-1])
-            for f in self.parts.glob("part-*.npz"):
-                if f.name not in self._files:
-                    f.unlink()  # samples of an unfinished segment
+            with reading(self.parts):
+                for name in self._files:
+                    with np.load(self.parts / name) as part:
+                        self._count += int(part["t"].shape[0])
+                        self.last_t = float(part["t"][-1])
+                for f in self.parts.glob("part-*.npz"):
+                    if f.name not in self._files:
+                        f.unlink()  # samples of an unfinished segment
         else:
             shutil.rmtree(self.parts, ignore_errors=True)
-        self.parts.mkdir(parents=True, exist_ok=True)
-        self._write_manifest()
+        with writing(self.parts):
+            self.parts.mkdir(parents=True, exist_ok=True)
+        try:
+            self._write_manifest()
+        except BaseException:
+            if not self._files:  # nothing kept: leave no empty parts folder behind
+                shutil.rmtree(self.parts, ignore_errors=True)
+            raise
 
     def _fields(self) -> list[str]:
         return list(_ARRAYS) + list(self.meta["extra"])
@@ -435,15 +448,17 @@ class RecordingWriter:
         self._write_manifest()
 
     def _write_manifest(self) -> None:
-        write_json_atomic(
-            self.parts / "manifest.json",
-            {
-                "meta": self.meta,
-                "completed": self.completed,
-                "files": self._files,
-                "open": self._open,
-            },
-        )
+        where = self.parts / "manifest.json"
+        with writing(where):
+            write_json_atomic(
+                where,
+                {
+                    "meta": self.meta,
+                    "completed": self.completed,
+                    "files": self._files,
+                    "open": self._open,
+                },
+            )
 
     def close(self) -> Recording:
         """End the open segment, join every part into ``path`` (validated), remove the parts."""
@@ -453,12 +468,23 @@ class RecordingWriter:
         shutil.rmtree(self.parts, ignore_errors=True)
         return rec
 
+    def save_completed(self) -> Recording | None:
+        """Join the completed segments into ``path`` (validated) and keep the parts, so that
+        a resume still goes on; None (nothing written) before the first segment ends. For an
+        interrupted writer: ``path`` then loads like any recording."""
+        if not self._files:
+            return None
+        rec = _join(self.parts, self._files, self.meta)
+        rec.save(self.path)
+        return rec
+
 
 def _join(parts: Path, files: list[str], meta: Mapping) -> Recording:
     chunks = []
-    for name in files:
-        with np.load(parts / name) as npz:
-            chunks.append({k: npz[k] for k in npz.files})
+    with reading(parts):
+        for name in files:
+            with np.load(parts / name) as npz:
+                chunks.append({k: npz[k] for k in npz.files})
     if not chunks:
         raise InputError(f"{parts}: nothing was recorded")
     data: dict[str, Any] = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
@@ -477,9 +503,29 @@ def recover(path: str | Path) -> Recording:
     """
     path = Path(path)
     parts = path.with_name(path.name + ".parts")
-    if not (parts / "manifest.json").is_file():
+    manifest = read_manifest(path)
+    if manifest is None:
         raise InputError(f"no interrupted recording to recover at {parts}")
-    manifest = json.loads((parts / "manifest.json").read_text())
     rec = _join(parts, manifest["files"] + manifest["open"], manifest["meta"])
     rec.save(path)
     return rec
+
+
+def read_manifest(path: str | Path) -> dict | None:
+    """The manifest of an interrupted ``RecordingWriter`` of ``path`` (its ``meta``,
+    ``completed`` segments, their part ``files`` and the ``open`` segment's); None when
+    there is none. ``InputError`` for a manifest that cannot be read."""
+    path = Path(path)
+    where = path.with_name(path.name + ".parts") / "manifest.json"
+    if not where.is_file():
+        return None
+    with reading(where):
+        text = where.read_text()
+    try:
+        manifest = json.loads(text)
+        keys = ("meta", "completed", "files", "open")
+        if not isinstance(manifest, dict) or any(k not in manifest for k in keys):
+            raise ValueError("fields missing")
+    except ValueError as exc:
+        raise InputError(f"{where}: not a recording manifest ({exc})") from None
+    return manifest

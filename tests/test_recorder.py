@@ -338,9 +338,9 @@ def test_resume_after_an_interruption(tmp_path, monkeypatch):
     first_run = _interrupt_after(monkeypatch, sim.arm, calls=4, samples=300)
     with pytest.raises(KeyboardInterrupt):
         record(sim.arm, plan, path, model="gen3_lite", progress=False)
-    assert not path.exists()
     manifest = json.loads((tmp_path / "rec.npz.parts" / "manifest.json").read_text())
     assert manifest["completed"] == [0]
+    kept = load_recording(path)  # the finished sweep, a loadable recording
     monkeypatch.undo()
 
     second_run = _interrupt_after(monkeypatch, sim.arm, calls=-1, samples=0)
@@ -349,6 +349,8 @@ def test_resume_after_an_interruption(tmp_path, monkeypatch):
     # sweep 0 kept, sweep 1 recorded once, from the second run only
     n0 = int(np.flatnonzero(rec.joint == 1)[-1]) + 1
     assert set(np.unique(rec.joint[:n0])) == {-1, 1}
+    assert kept.n_samples == n0
+    np.testing.assert_array_equal(kept.current, rec.current[:n0])
     assert set(np.unique(rec.joint[n0:])) == {-1, 2}
     assert not np.any(rec.joint[n0:] == 1)
     before, after = _rows(first_run[:n0]), _rows(second_run)
@@ -393,7 +395,7 @@ def test_resume_with_another_plan_is_refused(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         record(sim.arm, short_plan(joints=(1, 2)), path, model="gen3_lite", progress=False)
     monkeypatch.undo()
-    with pytest.raises(InputError, match="different plan"):
+    with pytest.raises(InputError, match="the plan differs"):
         record(sim.arm, short_plan(joints=(1, 3)), path, model="gen3_lite", resume=True)
     # without resume it starts over
     rec = record(sim.arm, short_plan(joints=(3,)), path, model="gen3_lite", progress=False)

@@ -8,7 +8,7 @@ import pytest
 
 from jaxcomp import recording
 from jaxcomp.constants import CONTROL_PERIOD
-from jaxcomp.errors import InputError, JaxcompError
+from jaxcomp.errors import FileError, InputError, JaxcompError
 from jaxcomp.identify.bins import bin_sweeps, steady
 from jaxcomp.recording import (
     Recording,
@@ -294,14 +294,13 @@ def test_failed_save_leaves_nothing_half_written(tmp_path, monkeypatch):
     before = path.read_bytes()
 
     def broken(file, **arrays):
-        with open(file, "wb") as f:
-            f.write(b"PK\x03\x04 half")
-        raise OSError("disk full")
+        file.write(b"PK\x03\x04 half")
+        raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(recording.np, "savez", broken)
-    with pytest.raises(OSError, match="disk full"):
+    with pytest.raises(FileError, match=f"cannot write {path}: No space left on device"):
         rec.save(path)
-    with pytest.raises(OSError):
+    with pytest.raises(FileError):
         rec.save(tmp_path / "new.npz")
     monkeypatch.undo()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.npz"]
@@ -389,7 +388,7 @@ def test_resume_with_other_settings_is_refused(tmp_path):
     path = tmp_path / "rec.npz"
     w = RecordingWriter(path, "gen3_lite", N_JOINTS)
     _write(w, data, range(100), 0)
-    with pytest.raises(InputError, match="different settings"):
+    with pytest.raises(InputError, match="the gravity differs"):
         RecordingWriter(path, "gen3_lite", N_JOINTS, gravity=[0, 0, -9.8], resume=True)
     # without resume the old parts are discarded
     w3 = RecordingWriter(path, "gen3_lite", N_JOINTS)

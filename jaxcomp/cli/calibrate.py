@@ -11,6 +11,7 @@ import numpy as np
 from jaxcomp.cli.group import cli
 from jaxcomp.cli.model_options import joint_names, model_options
 from jaxcomp.errors import InputError
+from jaxcomp.files import check_outputs
 
 _METHODS = ("jax", "scipy")
 
@@ -38,20 +39,15 @@ def _warn(params) -> None:
         click.echo(line, err=True)
 
 
-def _check_outputs(inputs: tuple[str, ...], outputs: dict[str, str | None]) -> None:
-    """One clear error (InputError) when an output file would replace an input or another
-    output, before anything is read or written."""
-    given = {Path(p).resolve(): p for p in inputs}
-    taken: dict[Path, str] = {}
-    for option, path in outputs.items():
-        if path is None:
-            continue
-        where = Path(path).resolve()
-        if where in given:
-            raise InputError(f"{option} {path} is also an input: it would replace the recording")
-        if where in taken:
-            raise InputError(f"{option} {path} is also given as {taken[where]}")
-        taken[where] = option
+#: What ``jaxcomp calibrate`` writes into its folder (with the recording's part files).
+CALIBRATION_FILES = (
+    "recording.npz",
+    "recording.npz.parts",
+    "params.json",
+    "params_scipy.json",
+    "sweeps.png",
+    "truth.json",
+)
 
 
 def _table(columns: dict, links: list[str]) -> str:
@@ -133,64 +129,146 @@ def _table(columns: dict, links: list[str]) -> str:
 @click.option(
     "--resume",
     is_flag=True,
-    help="Continue an interrupted calibration into the same DIR (keeps its sweeps).",
+    help="Continue an interrupted calibration in DIR (keeps its finished sweeps); refused when "
+    "the plan, model, joints, --robot, --seed or --truth differ from the interrupted run's.",
+)
+@click.option(
+    "--overwrite",
+    is_flag=True,
+    help="Discard the calibration DIR holds and record a new one (without it, a DIR that holds "
+    "one is refused).",
 )
 @click.option("--viewer", is_flag=True, help="Show the MuJoCo viewer (sim, needs a display).")
 def calibrate(
-    backend, model, joints, site, out_dir, plan, seed, truth_file, ip, resume, viewer
+    backend, model, joints, site, out_dir, plan, seed, truth_file, ip, resume, overwrite, viewer
 ) -> None:
     """Run the calibration sweeps, record them at 1 kHz, and fit with both methods.
 
     Each current-controlled joint is swept (up to -100..+100 deg, inside its limits) and back
     at constant speed with the robot's own position servo while the others are held, as in the
-    paper (Section IV-A). The recording
-    is written incrementally (an interrupted run keeps its finished sweeps; --resume goes on).
-    Then the joint JAX fit and the paper's scipy fit run on it and their parameters are
-    printed side by side (with the truth, on the simulator).
+    paper (Section IV-A). The recording is written incrementally: an interrupted run (Ctrl-C,
+    a fault) leaves DIR/recording.npz with its finished sweeps, and --resume records the
+    others. Then the joint JAX fit and the paper's scipy fit run on it and their parameters
+    are printed side by side (with the truth, on the simulator). One run at a time writes
+    into DIR (a lock file).
     """
-    from jaxcomp.identify.named_plans import check_plan_name, named_plan
+    from jaxcomp.files import output_folder
+    from jaxcomp.identify.named_plans import PLANS, check_plan_name, named_plan, random_count
     from jaxcomp.identify.plots import plot_sweeps
     from jaxcomp.identify.recorder import record
     from jaxcomp.robot import load_robot
 
-    out = Path(out_dir)
+    if resume and overwrite:
+        raise InputError(
+            "--resume continues the calibration in --out, --overwrite discards it: give one of them"
+        )
     check_plan_name(plan)
+    plan_file = plan if plan not in PLANS and random_count(plan) is None else None
+    check_outputs(  # truth.json: a --truth given there is written back unchanged
+        tuple(p for p in (truth_file, plan_file) if p),
+        [("--out", str(Path(out_dir) / f)) for f in CALIBRATION_FILES if f != "truth.json"],
+    )
     robot = load_robot(model, joints=joint_names(joints), site=site)
     if backend == "kortex" and robot.name != "gen3_lite":
         raise InputError(f"--robot kortex drives a Gen3 Lite; --model {model} is not one")
     the_plan = named_plan(robot, plan)
     click.echo(f"plan: {len(the_plan.sweeps)} sweeps, about {the_plan.duration():.0f} s of motion")
     truth = None
+    settings: dict = {"robot": backend}
     if backend == "sim":
-        from jaxcomp.hardware import Simulator, TrueRobot
+        from jaxcomp.hardware import TrueRobot
 
         truth = TrueRobot.load(truth_file, robot) if truth_file else TrueRobot.draw(robot, seed)
-        sim = Simulator(robot, truth, seed=seed, viewer=viewer)
-        arm = sim.arm
-        out.mkdir(parents=True, exist_ok=True)
-        truth.save(out / "truth.json")
-    else:
-        from jaxcomp.hardware import KortexArm
+        settings |= {"seed": seed, "truth": truth.to_dict()}
+    with output_folder(out_dir) as out:
+        _prepare_folder(out, the_plan, robot, settings, resume, overwrite)
+        if truth is not None:
+            from jaxcomp.hardware import Simulator
 
-        arm = KortexArm(ip, robot=robot)
-    with arm:
-        rec = record(arm, the_plan, out / "recording.npz", model=robot, resume=resume)
-    click.echo(f"recorded {rec.n_samples} samples -> {out / 'recording.npz'}")
-    fits = {}
-    for method in _METHODS:
-        fits[method] = _fit([rec], method)
-        click.echo(f"{method} fit: {fits[method].fit_seconds:.3f} s")
-    click.echo("(the first JAX fit on a machine includes its XLA compilation; it is cached)")
-    fits["jax"].save(out / "params.json")
-    fits["scipy"].save(out / "params_scipy.json")
-    columns = dict(fits)
-    if truth is not None:
-        columns["truth"] = truth.params
-    links = sorted({k for p in columns.values() for k in p.com_offset}, key=robot.link_index)
-    click.echo(_table(columns, links))
-    _warn(fits["jax"])
-    plot_sweeps(rec, columns, out / "sweeps.png")
+            _save(truth, out / "truth.json")
+            sim = Simulator(robot, truth, seed=seed, viewer=viewer)
+            arm = sim.arm
+        else:
+            from jaxcomp.hardware import KortexArm
+
+            arm = KortexArm(ip, robot=robot)
+        try:
+            with arm:
+                rec = record(
+                    arm,
+                    the_plan,
+                    out / "recording.npz",
+                    model=robot,
+                    resume=resume,
+                    settings=settings,
+                )
+        except KeyboardInterrupt:
+            kept = out / "recording.npz"
+            click.echo(
+                f"interrupted: the finished sweeps are in {kept}; --resume records the others"
+                if kept.is_file()
+                else "interrupted before the first sweep ended: nothing kept",
+                err=True,
+            )
+            raise
+        click.echo(f"recorded {rec.n_samples} samples -> {out / 'recording.npz'}")
+        fits = {}
+        for method in _METHODS:
+            fits[method] = _fit([rec], method)
+            click.echo(f"{method} fit: {fits[method].fit_seconds:.3f} s")
+        click.echo("(the first JAX fit on a machine includes its XLA compilation; it is cached)")
+        _save(fits["jax"], out / "params.json")
+        _save(fits["scipy"], out / "params_scipy.json")
+        columns = dict(fits)
+        if truth is not None:
+            columns["truth"] = truth.params
+        links = sorted({k for p in columns.values() for k in p.com_offset}, key=robot.link_index)
+        click.echo(_table(columns, links))
+        _warn(fits["jax"])
+        plot_sweeps(rec, columns, out / "sweeps.png")
     click.echo(f"wrote {out / 'params.json'}, {out / 'params_scipy.json'}, {out / 'sweeps.png'}")
+
+
+def _save(params, path: Path) -> None:
+    """``params.save(path)`` (atomic); FileError naming ``path`` when it cannot be written."""
+    from jaxcomp.files import writing
+
+    with writing(path):
+        params.save(path)
+
+
+def _prepare_folder(out: Path, plan, robot, settings: dict, resume: bool, overwrite: bool):
+    """Check what the calibration folder ``out`` holds against what was asked (InputError):
+    --resume needs an interrupted calibration of the same plan, model and ``settings`` (or
+    none); otherwise an earlier calibration is refused, or removed with --overwrite."""
+    import shutil
+
+    from jaxcomp.files import existing, writing
+    from jaxcomp.identify.recorder import check_resume
+
+    recording = out / "recording.npz"
+    held = existing(out, CALIBRATION_FILES)
+    if resume:
+        done = check_resume(recording, plan, robot, settings)
+        if (out / CALIBRATION_FILES[1]).exists():
+            click.echo(f"resuming: {len(done)} of {len(plan.sweeps)} sweeps already recorded")
+        elif recording.exists():
+            raise InputError(
+                f"--resume: {recording} is complete, there is nothing to resume; fit it with "
+                "`jaxcomp fit`, or record a new calibration with --overwrite"
+            )
+        return
+    if held and not overwrite:
+        raise InputError(
+            f"--out {out} holds an earlier calibration ({', '.join(held)}): --resume continues "
+            "it, --overwrite replaces it, or choose another --out"
+        )
+    for name in held:
+        with writing(out / name, "cannot remove"):
+            if (out / name).is_dir():
+                shutil.rmtree(out / name)
+            else:
+                (out / name).unlink()
 
 
 @cli.command()
@@ -236,10 +314,24 @@ def fit(recordings, method, each, out_file, plot_file, com_prior) -> None:
     with different gravity, or with and without a known payload), unless --each is given.
     Nothing is written when a recording is invalid or a fit does not converge.
     """
+    from contextlib import ExitStack
+
+    from jaxcomp.files import output_folder
+
+    check_outputs(recordings, [("--out", out_file), ("--plot", plot_file)])
+    with ExitStack() as stack:
+        folders = {Path(p).absolute().parent for p in (out_file, plot_file) if p}
+        for folder in sorted(folders):
+            stack.enter_context(output_folder(folder, "the folder of --out"))
+        _fit_into(recordings, method, each, out_file, plot_file, com_prior)
+
+
+def _fit_into(recordings, method, each, out_file, plot_file, com_prior) -> None:
+    """``jaxcomp fit`` once its output folders are locked."""
+    from jaxcomp.files import writing
     from jaxcomp.recording import load_recording
     from jaxcomp.robot_params import write_json_atomic
 
-    _check_outputs(recordings, {"--out": out_file, "--plot": plot_file})
     recs = [load_recording(p) for p in recordings]
     start = time.perf_counter()
     if each:
@@ -249,7 +341,8 @@ def fit(recordings, method, each, out_file, plot_file, com_prior) -> None:
             results = fit_each(recs, progress=True, com_prior=com_prior)
         else:
             results = [_fit([r], "scipy") for r in recs]
-        write_json_atomic(out_file, [p.to_dict() for p in results])
+        with writing(out_file):
+            write_json_atomic(out_file, [p.to_dict() for p in results])
         click.echo(
             f"{len(results)} fits ({method}) in {time.perf_counter() - start:.2f} s -> {out_file}"
         )
@@ -259,7 +352,7 @@ def fit(recordings, method, each, out_file, plot_file, com_prior) -> None:
             plot_batch(results, plot_file)
         return
     params = _fit(recs, method, com_prior)
-    params.save(out_file)
+    _save(params, Path(out_file))
     robot = recs[0].robot()
     links = sorted(params.com_offset, key=robot.link_index)
     click.echo(_table({method: params}, links))

@@ -8,10 +8,12 @@ import click
 
 from jaxcomp.cli.group import cli
 from jaxcomp.cli.model_options import joint_names, model_options
-from jaxcomp.errors import InputError, JaxcompError, ModelError
+from jaxcomp.errors import FileError, InputError, JaxcompError, ModelError
 
 #: The simulated robot when --model is not given: the Gen3 Lite on its Dingo-O base.
 DEFAULT_MODEL = "mobile_gen3_lite"
+#: What an earlier run left in --out: ``control.loop.RECORDING`` and its part files.
+_EARLIER_RUN = ("recording.npz", "recording.npz.parts")
 
 _TRAJ_HELP = (
     "Target path KIND[:key=value,...]; positions m, speeds m/s, accelerations m/s^2. "
@@ -173,6 +175,11 @@ def _target_marker(sim):
     help="Directory for recording.npz (1 kHz, plus target/ee/base/command) and timing.json.",
 )
 @click.option(
+    "--overwrite",
+    is_flag=True,
+    help="Replace the recording of an earlier run in --out (without it, such a folder is refused).",
+)
+@click.option(
     "--rt-priority",
     type=click.IntRange(0, 99),
     default=50,
@@ -182,7 +189,43 @@ def _target_marker(sim):
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Simulator truth and noise.")
 @click.option("--ip", default="192.168.1.10", show_default=True, help="Arm address (kortex).")
-def control(
+def control(**options) -> None:
+    """Run the compliant arm (current-based impedance control) with the base follower.
+
+    The controller works at 1 kHz in the arm's base frame; the base (when there is one)
+    follows the end effector (paper Eq. 20). Any arm model works: its current-controlled
+    joints, end effector, posture ('preferred' keyframe, else a start pose chosen on the model),
+    current limits and gains come from the model; the simulated arm starts at its 'home' pose
+    (same fallback), the real one where it stands. Any fault,
+    stale or NaN feedback, out-of-range command or Ctrl-C ends the run with the arm in
+    position mode and the base stopped. Prints the gains, how the run ended, the RMS tracking
+    error (m) and the loop timing. One run at a time writes into --out (a lock file).
+    """
+    from pathlib import Path
+
+    from jaxcomp.files import check_outputs, output_folder
+
+    out_dir = options["out_dir"]
+    outputs = [("--out", str(Path(out_dir) / name)) for name in (*_EARLIER_RUN, "timing.json")]
+    check_outputs(tuple(p for p in [options["params_file"]] if p), outputs)
+    with output_folder(out_dir):
+        _control(**options)
+
+
+def _refuse_earlier_run(out_dir: str, overwrite: bool) -> None:
+    """InputError when ``out_dir`` holds the recording of an earlier run, unless
+    ``overwrite``."""
+    from jaxcomp.files import existing
+
+    held = existing(out_dir, _EARLIER_RUN)
+    if held and not overwrite:
+        raise InputError(
+            f"--out {out_dir} holds the recording of an earlier run ({', '.join(held)}): "
+            "--overwrite replaces it, or choose another --out"
+        )
+
+
+def _control(
     mode: str,
     backend: str,
     model: str,
@@ -199,21 +242,12 @@ def control(
     viewer: bool,
     realtime: bool | None,
     out_dir: str,
+    overwrite: bool,
     rt_priority: int,
     seed: int,
     ip: str,
 ) -> None:
-    """Run the compliant arm (current-based impedance control) with the base follower.
-
-    The controller works at 1 kHz in the arm's base frame; the base (when there is one)
-    follows the end effector (paper Eq. 20). Any arm model works: its current-controlled
-    joints, end effector, posture ('preferred' keyframe, else a start pose chosen on the model),
-    current limits and gains come from the model; the simulated arm starts at its 'home' pose
-    (same fallback), the real one where it stands. Any fault,
-    stale or NaN feedback, out-of-range command or Ctrl-C ends the run with the arm in
-    position mode and the base stopped. Prints the gains, how the run ended, the RMS tracking
-    error (m) and the loop timing.
-    """
+    """``jaxcomp control`` (see ``control``) once its --out folder is locked."""
     from jaxcomp.control.timing import configure_jax_for_control, realtime_priority
 
     # each controller step on the calling thread, single-threaded kernels: no thread hand-off
@@ -258,6 +292,7 @@ def control(
         realtime = viewer
     params = RobotParams.load(params_file) if params_file is not None else None
     chosen = _chosen_joints(joints, params, params_file)
+    _refuse_earlier_run(out_dir, overwrite)
 
     def make_controller(arm_robot, params):
         if law == "velocity":
@@ -343,6 +378,8 @@ def control(
                 if part is not None:
                     part.close()
     click.echo(result.summary())
+    if result.file_error is not None:
+        raise FileError(result.file_error)
     if not result.ok:
         raise SystemExit(1)
 

@@ -36,7 +36,8 @@ def _compilation_cache() -> None:
 
 
 def main() -> None:
-    """Entry point: run the CLI; jaxcomp's own errors print one line and exit with status 2."""
+    """Entry point: run the CLI; jaxcomp's own errors, and a file that cannot be read or
+    written (``OSError``: read-only, full disk), print one ``error:`` line, status 2."""
     _compilation_cache()
     try:
         cli(standalone_mode=False)
@@ -48,4 +49,9 @@ def main() -> None:
         sys.exit(exc.exit_code)
     except JaxcompError as exc:
         click.echo(f"error: {exc}", err=True)
+        sys.exit(2)
+    except OSError as exc:
+        from jaxcomp.files import file_problem
+
+        click.echo(f"error: {file_problem(exc)}", err=True)
         sys.exit(2)

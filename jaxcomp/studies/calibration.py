@@ -45,6 +45,7 @@ from tqdm.auto import tqdm
 
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
+from jaxcomp.files import output_folder, writing
 from jaxcomp.identify.evaluate import random_poses
 from jaxcomp.identify.jax_fit import BatchFit, fit_model
 from jaxcomp.identify.jax_fit import fit_batch as batch_fit
@@ -74,8 +75,14 @@ from jaxcomp.studies.calibration_statistics import (
     parameter_table,
 )
 from jaxcomp.studies.plan_recording import Simulated, simulate
-from jaxcomp.studies.plan_signal import PlanSignal, plan_segments, plan_signal, start_pose
-from jaxcomp.studies.setup import MODEL, check_out_dir, simulator
+from jaxcomp.studies.plan_signal import (
+    PlanSignal,
+    check_every,
+    plan_segments,
+    plan_signal,
+    start_pose,
+)
+from jaxcomp.studies.setup import MODEL, simulator
 from jaxcomp.studies.truth_draw import TruthSpread, draw_truth, truth_rows
 
 __all__ = [  # the study, and the stages it composes
@@ -86,7 +93,6 @@ __all__ = [  # the study, and the stages it composes
     "CalibrationSettings",
     "StudyOutputs",
     "TruthSpread",
-    "check_out_dir",
     "draw_truth",
     "named_plan",
     "plan_segments",
@@ -243,6 +249,7 @@ def run_study(
     for g, rows in enumerate(world_groups(worlds, count)):
         the_plan = named_plan(robot, plan, seed=seed, group=g)
         groups.append(_Group(rows, the_plan, plan_signal(the_plan, start_pose(robot))))
+        check_every(groups[-1].signal, every)
     sim = simulator(settings.devices, robot)
     model = fit_model(robot, settings.com_prior)
     truth = draw_truth(robot, worlds, seed, spread)
@@ -402,15 +409,19 @@ def write_outputs(out: Path, report: dict, arrays: dict) -> list[Path]:
     Everything is written to a staging folder inside ``out`` first and moved in by
     ``os.replace`` only once all of it is written: an error leaves ``out`` as it was.
     """
-    stage = Path(tempfile.mkdtemp(prefix=".study-calibration.", dir=out))
+    with writing(out):
+        stage = Path(tempfile.mkdtemp(prefix=".study-calibration.", dir=out))
     try:
         plot_errors(report, arrays, stage / FIGURES[0])
         plot_coverage(report, arrays, stage / FIGURES[1])
-        np.savez_compressed(stage / WORLDS_FILE, **arrays)
-        write_json_atomic(stage / STUDY_FILE, json_ready(report))
+        with writing(out / WORLDS_FILE):
+            np.savez_compressed(stage / WORLDS_FILE, **arrays)
+        with writing(out / STUDY_FILE):
+            write_json_atomic(stage / STUDY_FILE, json_ready(report))
         names = [*FIGURES, WORLDS_FILE, STUDY_FILE]
-        for name in names:
-            os.replace(stage / name, out / name)
+        with writing(out):
+            for name in names:
+                os.replace(stage / name, out / name)
         return [out / name for name in names]
     finally:
         shutil.rmtree(stage, ignore_errors=True)
@@ -429,11 +440,12 @@ class StudyOutputs(NamedTuple):
 def study_into(
     out: Path, settings: CalibrationSettings, *, progress: bool = True, robot: Robot | None = None
 ) -> StudyOutputs:
-    """``run_study`` and ``write_outputs`` into the folder ``out``, which is checked first
-    (InputError), before minutes of simulation; nothing is written on error."""
-    out = check_out_dir(Path(out))
-    report, arrays = run_study(settings, progress=progress, robot=robot)
-    return StudyOutputs(report, arrays, write_outputs(out, report, arrays))
+    """``run_study`` and ``write_outputs`` into the folder ``out``, created and locked first
+    (``files.output_folder``: FileError before minutes of simulation); nothing is written
+    on error (a folder it created is removed again)."""
+    with output_folder(out) as folder:
+        report, arrays = run_study(settings, progress=progress, robot=robot)
+        return StudyOutputs(report, arrays, write_outputs(folder, report, arrays))
 
 
 def summary(report: dict) -> str:

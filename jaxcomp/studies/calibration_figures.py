@@ -14,9 +14,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from jaxcomp.files import save_figure
+
 if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn
     from matplotlib.axes import Axes
-    from matplotlib.figure import Figure
 
 
 def plot_errors(report: dict, arrays: dict, path: Path) -> Path:
@@ -69,7 +70,7 @@ def plot_errors(report: dict, arrays: dict, path: Path) -> Path:
         f"{report['plan']['name']}, {report['record_rate_hz']:g} Hz, {report['backend']}"
     )
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_coverage(report: dict, arrays: dict, path: Path) -> Path:
@@ -98,7 +99,7 @@ def plot_coverage(report: dict, arrays: dict, path: Path) -> Path:
     std = np.array([table[k]["std_rms"] for k in names], float)
     groups = ("ratio", "friction", "viscous", "com", "phase")
     for g, color in zip(groups, ("C0", "C1", "C2", "C3", "C4"), strict=True):
-        sel = np.array([k.startswith(g) for k in names])
+        sel = np.array([k.startswith(g) for k in names], bool)  # bool even when empty
         b.loglog(std[sel], spread[sel], "o", color=color, ms=4, label=g)
     good = np.isfinite(spread) & np.isfinite(std) & (spread > 0) & (std > 0)
     if good.any():
@@ -120,7 +121,7 @@ def plot_coverage(report: dict, arrays: dict, path: Path) -> Path:
     c.legend(fontsize=7)
     fig.suptitle(f"Reported standard errors against the truth, {report['worlds']} worlds")
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _paired_boxes(ax: Axes, a: np.ndarray, b: np.ndarray, labels: list[str]) -> None:
@@ -146,11 +147,3 @@ def _paired_boxes(ax: Axes, a: np.ndarray, b: np.ndarray, labels: list[str]) -> 
 def _columns(values: np.ndarray) -> list[np.ndarray]:
     """The finite values of each column (boxplot input)."""
     return [c[np.isfinite(c)] for c in np.asarray(values, float).T]
-
-
-def _save(fig: Figure, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path

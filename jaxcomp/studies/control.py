@@ -41,6 +41,7 @@ from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.control import ImpedanceGains, impedance_gains
 from jaxcomp.control.trajectory import Trajectory, parse_trajectory
 from jaxcomp.errors import InputError
+from jaxcomp.files import output_folder, writing
 from jaxcomp.hardware.mjx import (
     SETTLE_STEPS,
     BatchTruth,
@@ -57,7 +58,7 @@ from jaxcomp.studies.control_policy import (
     controller_params,
     impedance_policy,
 )
-from jaxcomp.studies.setup import MODEL, check_out_dir, simulator
+from jaxcomp.studies.setup import MODEL, simulator
 
 # the timeline, s from the start of the closed loop
 BASELINE = (0.3, 0.5)  # static offset window
@@ -385,7 +386,8 @@ def run_study(
 # ----------------------------------------------------------------------------- outputs
 def write_report(report: dict, out: Path) -> Path:
     """DIR/study.json, written atomically (NaN as null)."""
-    return write_json_atomic(out / STUDY_JSON, json_ready(report))
+    with writing(out / STUDY_JSON):
+        return write_json_atomic(out / STUDY_JSON, json_ready(report))
 
 
 def _mm(stats: dict, key: str) -> str:
@@ -421,9 +423,10 @@ class StudyOutputs(NamedTuple):
 def study_into(
     out: Path, settings: ControlSettings, *, progress: bool = True, robot: Robot | None = None
 ) -> StudyOutputs:
-    """``run_study`` written into the folder ``out``, which is checked first (before minutes
-    of simulation): study.json, then the figures (``control_figures.write_figures``)."""
-    out = check_out_dir(Path(out))
-    report = run_study(settings, progress=progress, robot=robot)
-    path = write_report(report, out)
-    return StudyOutputs(report, [path, *write_figures(report, out)])
+    """``run_study`` written into the folder ``out``, created and locked first
+    (``files.output_folder``: FileError before minutes of simulation): study.json, then the
+    figures (``control_figures.write_figures``)."""
+    with output_folder(out) as folder:
+        report = run_study(settings, progress=progress, robot=robot)
+        path = write_report(report, folder)
+        return StudyOutputs(report, [path, *write_figures(report, folder)])

@@ -5,6 +5,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcomp.files import save_figure
+
 #: The figures ``write_figures`` writes.
 FIGURES = ("tracking.png", "compliance.png")
 
@@ -49,8 +51,5 @@ def write_figures(report: dict, out: Path) -> list[Path]:
             f"{int((~ok).sum())} faulted before the end of the phase (not shown)"
         )
         fig.tight_layout()
-        path = out / name
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(save_figure(fig, out / name, dpi=120))
     return paths

@@ -1,10 +1,5 @@
-"""What every study is set up with: the studied robot, its MJX simulator, the report folder."""
+"""What every study is set up with: the studied robot and its MJX simulator."""
 
-import os
-import tempfile
-from pathlib import Path
-
-from jaxcomp.errors import InputError
 from jaxcomp.hardware.mjx import MjxSimulator, batch_mesh
 from jaxcomp.robot import Robot, load_robot
 
@@ -21,17 +16,3 @@ def simulator(devices: int | None, robot: Robot | None = None) -> MjxSimulator:
     return robot.cached(
         ("study_simulator", devices), lambda: MjxSimulator(robot, mesh=batch_mesh(devices))
     )
-
-
-def check_out_dir(out: Path) -> Path:
-    """Create ``out`` if needed and check that files can be written in it (InputError)."""
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} exists and is not a folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".write-test.", dir=out)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as exc:
-        raise InputError(f"cannot write to --out {out}: {exc.strerror or exc}") from None
-    return out
