@@ -9,6 +9,7 @@ import click
 import numpy as np
 
 from jaxcomp.cli.group import cli
+from jaxcomp.cli.kortex_backend import open_kortex_arm
 from jaxcomp.cli.model_options import joint_names, model_options
 from jaxcomp.errors import InputError
 
@@ -170,9 +171,7 @@ def calibrate(
         out.mkdir(parents=True, exist_ok=True)
         truth.save(out / "truth.json")
     else:
-        from jaxcomp.hardware import KortexArm
-
-        arm = KortexArm(ip, robot=robot)
+        arm = open_kortex_arm(ip, robot=robot)
     with arm:
         rec = record(arm, the_plan, out / "recording.npz", model=robot, resume=resume)
     click.echo(f"recorded {rec.n_samples} samples -> {out / 'recording.npz'}")
