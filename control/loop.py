@@ -34,6 +34,12 @@ for the next 1 kHz deadline (real time: absolute ``perf_counter_ns`` ticks, slee
 the last 200 us) or goes straight on (lock step with a simulator: deterministic, as fast as the
 CPU allows) and sends it.
 
+Before anything is switched, the targets are checked against the arm's reach
+(``workspace.arm_reach``: guidance mode, or tracking without a base, whose targets the arm alone
+must reach); during the run the watchdog also ends a run whose end effector stays more than
+``max_error`` m (default twice the controller's error clip: 0.2 m on the Gen3 Lite) from its
+target for more than ``max_error_time`` s (default 2 s) with ``not_tracking``.
+
 Any watchdog trip, hardware fault, Ctrl-C or exception ends the run with the arm in POSITION
 mode and the base stopped, before anything else is done (``safe_stop`` in a ``finally``).
 The recording is written incrementally (``RecordingWriter``, one part per 1000 samples, handed
@@ -74,6 +80,7 @@ from jaxcomp.control.timing import CycleTimer, wait_until
 from jaxcomp.control.trajectory import Static, Trajectory, TrajectorySpec, parse_trajectory
 from jaxcomp.control.velocity import VelocityController
 from jaxcomp.control.watchdog import FAULT, Watchdog, WatchdogTrip, safe_stop
+from jaxcomp.control.workspace import arm_reach, check_reachable
 from jaxcomp.errors import FileError, InputError, ModelError
 from jaxcomp.files import file_problem
 from jaxcomp.hardware.interface import Arm, ArmCommand, ArmState, Base, ControlMode, HardwareFault
@@ -85,6 +92,8 @@ log = logging.getLogger(__name__)
 
 RECORDING = "recording.npz"
 TIMING = "timing.json"
+#: s, how long the end effector may stay beyond ``max_error`` of its target (``run_control``).
+MAX_ERROR_TIME = 2.0
 #: Smallest singular value of the end effector's position Jacobian, relative to its largest,
 #: that still counts as a direction the arm can move in (``check_site_mobility``).
 MIN_MOBILITY = 1e-3
@@ -458,7 +467,8 @@ class ControlResult:
 
     Attributes:
         kind: "completed", "interrupted" (Ctrl-C), a watchdog trip kind
-            (``control.watchdog``), "hardware_fault", "command_refused" or "error".
+            (``control.watchdog``; "not_tracking": the end effector stayed off its target),
+            "hardware_fault" (a simulator's instability too), "command_refused" or "error".
         reason: one readable line.
         cycles: ``arm.cycle`` calls made (the last may be the one that tripped).
         duration: s of robot time controlled (to the last state received).
@@ -545,6 +555,9 @@ def run_control(
     base_velocity_compensation: bool = True,
     on_cycle: Callable[[int, ArmState, np.ndarray, np.ndarray], None] | None = None,
     default_duration: float = 10.0,
+    max_error: float | None = None,
+    max_error_time: float = MAX_ERROR_TIME,
+    before_start: Callable[[float], None] | None = None,
 ) -> ControlResult:
     """Run guidance or tracking mode for ``duration`` s (see the module doc).
 
@@ -578,6 +591,15 @@ def run_control(
         on_cycle: called each cycle as ``on_cycle(k, state, command, target)`` (target: (3,)
             world m) after the command is computed and checked and before it is sent (for
             viewers and tests; keep it short: it runs inside the 1 ms budget).
+        max_error: m, a run whose end effector stays further than this from its target for
+            more than ``max_error_time`` s ends with ``not_tracking``; None: twice the
+            controller's error clip; ``math.inf``: never (ignored with ``watchdog``).
+        before_start: called with the run's duration (s) once it is resolved, before anything
+            is switched or written (e.g. to refuse events outside the run by raising
+            ``InputError``).
+
+    Targets the arm alone must reach (guidance mode, or tracking without a base) that get
+    farther from its base than its reach (``workspace.arm_reach``) are refused (InputError).
 
     Returns a ``ControlResult``; raises only on setup errors (``JaxcompError``, nothing was
     switched) and on unexpected exceptions (after the safe stop and saving the recording).
@@ -599,6 +621,9 @@ def run_control(
         max_saturated_cycles=max_saturated_cycles,
         base_velocity_compensation=base_velocity_compensation,
         default_duration=default_duration,
+        max_error=max_error,
+        max_error_time=max_error_time,
+        before_start=before_start,
     )
     end = _loop(run, arm, base, realtime, on_cycle)
     result = _finish(run, end)
@@ -657,6 +682,9 @@ def _set_up(
     max_saturated_cycles: int,
     base_velocity_compensation: bool,
     default_duration: float,
+    max_error: float | None,
+    max_error_time: float,
+    before_start: Callable[[float], None] | None,
 ) -> _Run:
     """The set-up of ``run_control`` (its arguments): check that the arm is healthy and
     still, resolve the frames and the trajectory, compile and check the first command, open
@@ -668,7 +696,10 @@ def _set_up(
     if mount is None:
         mount = ArmMount.from_model(model) if base is not None else ArmMount()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    if not (math.isfinite(max_error_time) and max_error_time > 0):
+        raise InputError(f"max_error_time must be a positive number of s, got {max_error_time}")
+    if max_error is None:
+        max_error = 2.0 * float(getattr(controller.gains, "error_clip", 0.1))
     wd = watchdog or Watchdog(
         arm.joint_names,
         law.limit,
@@ -677,6 +708,8 @@ def _set_up(
         stale_cycles=arm.stale_tolerance,
         max_gap=0.02 if realtime else None,
         unit=law.unit,
+        max_error=max_error,
+        max_error_cycles=max(int(round(max_error_time / CONTROL_PERIOD)), 1),
     )
     follower = BaseFollower(base_gains, base.limits) if base is not None else None
 
@@ -717,6 +750,13 @@ def _set_up(
     if not (math.isfinite(duration) and duration > 0):
         raise InputError(f"duration must be a positive number of s, got {duration}")
     n_cycles = int(round(duration / CONTROL_PERIOD))
+    if guidance or base is None:  # the arm alone must reach every target
+        reach = arm_reach(robot, controller.site)
+        o = mount.arm_to_base(reach.origin)  # in the trajectory's frame:
+        o = o if guidance else mount.base_to_world(o, pose0)
+        check_reachable(traj, duration, o, reach.radius, robot.name)
+    if before_start is not None:
+        before_start(duration)
     desired_b = mount.arm_to_base(ee0)  # tracking: the base keeps the EE where it started
 
     # ---- compile and check the first command before anything is switched
@@ -739,6 +779,7 @@ def _set_up(
     wd.check_command(work.first_command(state, pose0), state.t)
     law.start(state)
 
+    out.mkdir(parents=True, exist_ok=True)
     writer = _BlockWriter(
         out / RECORDING,
         model,
@@ -962,6 +1003,7 @@ class _Cycle:
         if self.last_err > self.max_err:
             self.max_err = self.last_err
         self.samples += 1
+        self.wd.check_error(self.last_err, state.t - self.t0)
         return cmd
 
 

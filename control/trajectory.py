@@ -124,6 +124,18 @@ class Segment(ABC):
         p, dp, ddp = self.at(s)
         return TargetSample(p, dp * sd, ddp * (sd * sd) + dp * sdd)
 
+    def farthest(self, point: np.ndarray, s_end: float) -> np.ndarray:
+        """(3,) m, the point of the path over arc lengths [0, s_end] m farthest from
+        ``point`` (here: of 1001 samples; exact in ``Line`` and ``Arc``)."""
+        points = [self.at(s)[0] for s in np.linspace(0.0, s_end, 1001)]
+        return _farthest(points, point)
+
+
+def _farthest(points, point: np.ndarray) -> np.ndarray:
+    """The one of ``points`` (each (3,) m) farthest from ``point``."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    return points[int(np.argmax(np.linalg.norm(points - point, axis=1)))].copy()
+
 
 def _floats(v) -> tuple[float, float, float]:
     return float(v[0]), float(v[1]), float(v[2])
@@ -147,6 +159,10 @@ class Line(Segment):
 
     def at(self, s: float):
         return self.start + self._unit() * min(s, self.length), self._unit(), np.zeros(3)
+
+    def farthest(self, point: np.ndarray, s_end: float) -> np.ndarray:
+        # the distance from a point is convex along a line: one of the two ends
+        return _farthest([self.start, self.at(s_end)[0]], point)
 
     def sample(self, s: float, sd: float, sdd: float) -> TargetSample:
         # scalar maths on cached floats: a few us per call at 1 kHz
@@ -188,6 +204,18 @@ class Arc(Segment):
         tangent = sign * (-sn * self.u + c * self.w)
         return self.centre + self.radius * radial, tangent, -radial / self.radius
 
+    def farthest(self, point: np.ndarray, s_end: float) -> np.ndarray:
+        # |c + r radial(phi) - p|^2 = const + 2 r (c - p).radial(phi): largest at the ends or
+        # where radial(phi) points along (c - p)'s part in the plane, if the arc gets there
+        span = min(s_end, self.length) / self.radius
+        sign = 1.0 if self.sweep >= 0 else -1.0
+        off = self.centre - np.asarray(point, dtype=float)
+        best = math.atan2(float(off @ self.w), float(off @ self.u))
+        angles = [self.phi0, self.phi0 + sign * span]
+        if span >= 2 * math.pi or (sign * (best - self.phi0)) % (2 * math.pi) <= span:
+            angles.append(best)
+        return _farthest([self.at(sign * (a - self.phi0) * self.radius)[0] for a in angles], point)
+
     def sample(self, s: float, sd: float, sdd: float) -> TargetSample:
         fast = self.__dict__.get("_fast")
         if fast is None:
@@ -228,6 +256,13 @@ class Trajectory(ABC):
         out = [self(float(t)) for t in np.asarray(times, dtype=float).ravel()]
         return TargetSample(*(np.array([getattr(o, f) for o in out]) for f in TargetSample._fields))
 
+    def farthest(self, point, until: float) -> np.ndarray:
+        """(3,) m, the target over times [0, until] s farthest from ``point`` (3,) m (here:
+        sampled every 10 ms, at most 100 000 samples; exact in ``Static`` and ``Piecewise``)."""
+        end = min(float(until), self.duration)
+        times = np.linspace(0.0, end, int(min(end / 0.01, 1e5)) + 2)
+        return _farthest(self.sample(times).pos, np.asarray(point, dtype=float))
+
 
 @dataclass(frozen=True)
 class Static(Trajectory):
@@ -239,6 +274,9 @@ class Static(Trajectory):
 
     def __call__(self, t: float) -> TargetSample:
         return TargetSample(self.point.copy(), np.zeros(3), np.zeros(3))
+
+    def farthest(self, point, until: float) -> np.ndarray:
+        return self.point.copy()
 
 
 @dataclass(frozen=True)
@@ -261,6 +299,16 @@ class Piecewise(Trajectory):
     @property
     def duration(self) -> float:  # type: ignore[override]
         return self._starts[-1] + self.pieces[-1][1].duration
+
+    def farthest(self, point, until: float) -> np.ndarray:
+        point = np.asarray(point, dtype=float)
+        found = []
+        for (seg, prof), start in zip(self.pieces, self._starts, strict=True):
+            if found and start > until:
+                break
+            s_end = prof(min(max(until - start, 0.0), prof.duration))[0]
+            found.append(seg.farthest(point, s_end))
+        return _farthest(found, point)
 
     def __call__(self, t: float) -> TargetSample:
         t = max(float(t), 0.0)

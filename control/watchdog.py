@@ -8,7 +8,9 @@ the arm in POSITION mode and stops the base before anything else (``safe_stop``)
 - odometry: NaN/inf in the base pose or twist;
 - command: NaN/inf, a current beyond ``current_limit`` (A), a current held at the controller's
   saturation for more than ``max_saturated_cycles`` consecutive cycles;
-- real time only: a gap of more than ``max_gap`` s between two cycles (the loop stalled).
+- real time only: a gap of more than ``max_gap`` s between two cycles (the loop stalled);
+- tracking: the end effector further than ``max_error`` m from its target for more than
+  ``max_error_cycles`` consecutive cycles (it does not track: out of reach, blocked, held).
 """
 
 from __future__ import annotations
@@ -18,13 +20,14 @@ import math
 
 import numpy as np
 
-from jaxcomp.errors import JaxcompError
+from jaxcomp.constants import CONTROL_PERIOD
+from jaxcomp.errors import InputError, JaxcompError
 from jaxcomp.hardware.interface import Arm, ArmState, Base, ControlMode
 
 log = logging.getLogger(__name__)
 
 #: Trip kinds (``WatchdogTrip.kind``).
-STALE, NAN_STATE, FAULT, NAN_COMMAND, LIMIT, SATURATED, STALL, NAN_ODOMETRY = (
+STALE, NAN_STATE, FAULT, NAN_COMMAND, LIMIT, SATURATED, STALL, NAN_ODOMETRY, NOT_TRACKING = (
     "stale_feedback",
     "nan_state",
     "actuator_fault",
@@ -33,6 +36,7 @@ STALE, NAN_STATE, FAULT, NAN_COMMAND, LIMIT, SATURATED, STALL, NAN_ODOMETRY = (
     "saturated",
     "loop_stall",
     "nan_odometry",
+    "not_tracking",
 )
 
 
@@ -59,6 +63,8 @@ class Watchdog:
         stale_cycles: consecutive stale states tolerated (0: the first one trips).
         max_gap: s, the longest wall-clock gap between two cycles (real time only; None: off).
         unit: of the commands (messages): "A" for currents, "rad/s" for velocities.
+        max_error: m, the end effector's distance from its target (``check_error``) that may
+            last at most ``max_error_cycles`` consecutive cycles; None or inf: no check.
     """
 
     def __init__(
@@ -71,6 +77,8 @@ class Watchdog:
         stale_cycles: int = 0,
         max_gap: float | None = None,
         unit: str = "A",
+        max_error: float | None = None,
+        max_error_cycles: int = 2000,
     ):
         self.joint_names = tuple(joint_names)
         self.n = len(self.joint_names)
@@ -90,6 +98,15 @@ class Watchdog:
         self._any_saturated = False
         self._sat_at = None if self.saturation is None else self.saturation - 1e-9
         self._last_ns: int | None = None
+        self.max_error = math.inf if max_error is None else float(max_error)
+        if not self.max_error > 0 or max_error_cycles < 1:
+            raise InputError(
+                f"max_error must be > 0 m and max_error_cycles >= 1, got {max_error}, "
+                f"{max_error_cycles}"
+            )
+        self.max_error_cycles = int(max_error_cycles)
+        self._off_target = 0  # consecutive cycles beyond max_error
+        self._off_since: float | None = None
         # the same limits as floats for the per-cycle tests (``_within``)
         self._limit = self.current_limit.tolist()
         self._below_sat = None if self._sat_at is None else np.nextafter(self._sat_at, -1).tolist()
@@ -194,6 +211,26 @@ class Watchdog:
                 self._saturated[:] = 0
                 self._any_saturated = False
 
+    def check_error(self, error: float, t: float | None = None) -> None:
+        """Count the cycles the end effector is more than ``max_error`` m from its target
+        (``error`` m, this cycle's, at ``t`` s from the run's start); raises ``WatchdogTrip``
+        (``not_tracking``) after ``max_error_cycles`` in a row."""
+        if error <= self.max_error:
+            self._off_target = 0
+            return
+        if self._off_target == 0:
+            self._off_since = t
+        self._off_target += 1
+        if self._off_target > self.max_error_cycles:
+            since = "" if self._off_since is None else f" from t = {self._off_since:.3f} s"
+            raise WatchdogTrip(
+                NOT_TRACKING,
+                f"not tracking: the end effector stayed more than {1e3 * self.max_error:.0f} mm "
+                f"from its target for {CONTROL_PERIOD * (self._off_target - 1):g} s{since} (now "
+                f"{1e3 * error:.0f} mm): the target is out of reach or the arm is blocked or held",
+                t,
+            )
+
 
 def safe_stop(arm: Arm | None, base: Base | None) -> list[str]:
     """Arm to POSITION mode (holding where it is) and base stopped, each tried even when the
@@ -229,6 +266,7 @@ __all__ = [
     "NAN_COMMAND",
     "NAN_ODOMETRY",
     "NAN_STATE",
+    "NOT_TRACKING",
     "SATURATED",
     "STALE",
     "STALL",

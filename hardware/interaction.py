@@ -106,6 +106,12 @@ class Interaction:
         self.rope_force = np.zeros(3)
         self._update()
 
+    def clear(self) -> None:
+        """Remove everything: constant wrench, pushes, rope."""
+        self.pushes.clear()
+        self.set_wrench()
+        self.detach_rope()
+
     def wrench(self, t: float, point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Total force (3,) N and torque (3,) N m on the end effector at time t."""
         force, torque = self.force.copy(), self.torque.copy()

@@ -29,9 +29,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from jaxcomp.constants import CONTROL_PERIOD
+from jaxcomp.constants import CONTROL_PERIOD, STANDARD_GRAVITY
 from jaxcomp.errors import InputError, ModelError
-from jaxcomp.hardware.interaction import Interaction, Push, Rope
+from jaxcomp.hardware.interaction import Interaction, Push, Rope, vec3
 from jaxcomp.hardware.interface import Arm, ArmLimits, ArmState, BaseState, ControlMode
 from jaxcomp.hardware.mecanum import TwistLimiter, TwistLimits
 from jaxcomp.hardware.truth import TrueRobot
@@ -44,6 +44,19 @@ _POS, _VEL, _CUR = 0, 1, 2
 _CODE = {ControlMode.POSITION: _POS, ControlMode.VELOCITY: _VEL, ControlMode.CURRENT: _CUR}
 _MODE = {v: k for k, v in _CODE.items()}
 _NOISE_BLOCK = 4096
+#: A push or wrench on the end effector may be at most this many times the weight of the arm
+#: (the links its joints move, under standard gravity): beyond, the simulation breaks down
+#: (``Simulator.max_push_force``; 396 N for the Gen3 Lite).
+PUSH_LIMIT_WEIGHTS = 10.0
+#: MuJoCo's warnings after which it resets the simulation (NaN, Inf or huge values).
+_RESET_WARNINGS = tuple(
+    int(w)
+    for w in (
+        mujoco.mjtWarning.mjWARN_BADQPOS,
+        mujoco.mjtWarning.mjWARN_BADQVEL,
+        mujoco.mjtWarning.mjWARN_BADQACC,
+    )
+)
 
 
 def _fast_index(adr: np.ndarray) -> slice | np.ndarray:
@@ -99,6 +112,11 @@ class Simulator:
     effort limits; in POSITION mode ``dq_ref = 0`` (no feed-forward, so target steps cause no
     velocity spikes), in VELOCITY mode ``q_ref`` integrates ``dq_ref``. In CURRENT mode the
     torque is ``c / r``; a current whose torque exceeds the effort limit is clipped and faults.
+
+    Pushes and wrenches beyond ``max_push_force`` are refused. Should MuJoCo still find NaN,
+    Inf or huge values (it then resets the simulation to the model's reference pose), the
+    interaction is removed and the arm faults with "simulator unstable", holding in position
+    mode.
     """
 
     def __init__(
@@ -130,6 +148,7 @@ class Simulator:
         else:  # a bare base: nothing hidden
             self.truth = None
         self.data = mujoco.MjData(m)
+        self._resets = 0  # MuJoCo's resets seen (``_check_stability``)
         self._qadr = m.jnt_qposadr[self.arm_joints]
         self._dadr = m.jnt_dofadr[self.arm_joints]
         self._qsl, self._dsl = _fast_index(self._qadr), _fast_index(self._dadr)
@@ -369,13 +388,37 @@ class Simulator:
         return BaseState(float(d.time), np.array((x, y, yaw)), twist)
 
     # ----------------------------------------------------------------- interaction
+    @cached_property
+    def max_push_force(self) -> float:
+        """N, the largest force a push or wrench may put on the end effector:
+        ``PUSH_LIMIT_WEIGHTS`` times the weight (standard gravity) of the links the arm's
+        joints move (0 without arm joints)."""
+        tree = self.robot.tree
+        moved = tree.moves[self.arm_joints].any(axis=0) if self.n else np.zeros(tree.nb, bool)
+        mass = float(np.sum(tree.nominal.mass[moved]))
+        return PUSH_LIMIT_WEIGHTS * mass * float(np.linalg.norm(STANDARD_GRAVITY))
+
+    def _check_force(self, force, what: str) -> None:
+        """InputError for a force (3,) N beyond ``max_push_force`` (or not a finite vector)."""
+        size = float(np.linalg.norm(vec3(force, f"{what} force")))
+        if size > self.max_push_force:
+            raise InputError(
+                f"{what} force of {size:.4g} N is beyond {self.max_push_force:.0f} N, "
+                f"{PUSH_LIMIT_WEIGHTS:g} times the weight of {self.robot.name}'s arm: the "
+                "simulation would break down"
+            )
+
     def set_wrench(self, force=(0.0, 0.0, 0.0), torque=(0.0, 0.0, 0.0)) -> None:
-        """A constant force N and torque N m (world frame) at the end-effector point."""
+        """A constant force N and torque N m (world frame) at the end-effector point; the
+        force at most ``max_push_force``."""
+        self._check_force(force, "wrench")
         self.interaction.set_wrench(force, torque)
         self._clear_xfrc()
 
     def push(self, start: float, duration: float, force, torque=(0.0, 0.0, 0.0)) -> Push:
-        """Push ``force`` N (world) on the end effector from ``start`` for ``duration`` s."""
+        """Push ``force`` N (world, at most ``max_push_force``) on the end effector from
+        ``start`` for ``duration`` s."""
+        self._check_force(force, "push")
         return self.interaction.add_push(start, duration, force, torque)
 
     def attach_rope(self, anchor, free_length: float, stiffness: float) -> Rope:
@@ -423,7 +466,10 @@ class Simulator:
                 self._drive_base()
             if not self.interaction.idle and na:
                 self._apply_interaction()
+            t0 = d.time
             mujoco.mj_step(m, d)
+            if d.time <= t0 or t0 == 0.0:  # after a reset MuJoCo's time starts again
+                self._check_stability(t0)
             if na:
                 self._measure()
             if pace and self._realtime:
@@ -439,6 +485,26 @@ class Simulator:
         yaw = float(d.qpos[self._bqadr[2]])
         c, s = math.cos(yaw), math.sin(yaw)
         d.ctrl[self.n :] = (c * vx - s * vy, s * vx + c * vy, wz)
+
+    def _check_stability(self, t: float) -> None:
+        """Fault the arm (\"simulator unstable\") if MuJoCo reset the simulation in the step
+        from time ``t`` s (NaN, Inf or huge positions, velocities or accelerations)."""
+        warnings = self.data.warning
+        resets = sum(int(warnings[w].number) for w in _RESET_WARNINGS)
+        if resets == self._resets:
+            return
+        self._resets = resets
+        what = [
+            mujoco.mjtWarning(w).name.removeprefix("mjWARN_BAD").lower()
+            for w in _RESET_WARNINGS
+            if warnings[w].number
+        ]
+        self.interaction.clear()  # what broke it must not act on the reset simulation
+        self._clear_xfrc()
+        self.fault(
+            f"simulator unstable: MuJoCo found NaN, Inf or huge values ({', '.join(what)}) "
+            f"at t = {t:.3f} s and reset the simulation (pushes removed)"
+        )
 
     def _measure(self) -> None:
         """Measured current and the cheap fault tests of the step just taken."""

@@ -35,6 +35,17 @@ DEFAULT_POSES = {
 }
 
 
+def _floats(value: Any, what: str, expected: str) -> np.ndarray:
+    """``value`` as a float array, or InputError naming ``what`` and the ``expected`` shape
+    and unit (strings, dicts and other non-numbers)."""
+    try:
+        return np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"{what} must be an array of numbers of shape {expected}, got {value!r:.60}"
+        ) from None
+
+
 def builtin_models() -> list[str]:
     """Names accepted by ``load_robot`` besides file paths."""
     return sorted(BUILTIN)
@@ -360,7 +371,7 @@ class Robot:
         if isinstance(q, jax.core.Tracer):
             arr = q
         else:
-            arr = np.asarray(q, dtype=float)
+            arr = _floats(q, what, f"({self.nv},) rad or m")
         if arr.shape != (self.nv,):
             raise InputError(
                 f"{what} must have shape ({self.nv},) for {self.name} "
@@ -379,22 +390,37 @@ class Robot:
     def check_gravity(self, gravity) -> jax.Array:
         if gravity is None:
             return self._device_defaults[1]
-        g = np.asarray(gravity, dtype=float)
+        g = _floats(gravity, "gravity", "(3,) m/s^2")
         if g.shape != (3,) or not np.all(np.isfinite(g)):
             raise InputError(f"gravity must be a finite vector of shape (3,) m/s^2, got {g!r}")
         return jnp.asarray(g)
 
     def check_params(self, params: InertialParams | None) -> InertialParams:
+        """``params`` (None: the nominal ones) or InputError: each field of its shape, finite,
+        no negative link mass (values are checked unless traced, e.g. under ``jax.grad``)."""
         if params is None:
             return self._device_defaults[0]
         nb = self.tree.nb
         shapes = {"mass": (nb,), "com": (nb, 3), "inertia": (nb, 3, 3)}
+        units = {"mass": "kg", "com": "m", "inertia": "kg m^2"}
         for field, shape in shapes.items():
             value = getattr(params, field)
             if tuple(np.shape(value)) != shape:
                 raise InputError(
                     f"params.{field} must have shape {shape}, got {tuple(np.shape(value))}"
                 )
+            if isinstance(value, jax.core.Tracer):
+                continue
+            arr = _floats(value, f"params.{field}", f"{shape} {units[field]}")
+            finite = np.isfinite(arr.reshape(nb, -1)).all(axis=1)
+            if not finite.all():
+                raise InputError(
+                    f"params.{field} contains NaN or inf for link(s) "
+                    f"{', '.join(self.link_names[i] for i in np.flatnonzero(~finite))}"
+                )
+            if field == "mass" and (arr < 0).any():
+                bad = [f"{self.link_names[i]} ({arr[i]:g} kg)" for i in np.flatnonzero(arr < 0)]
+                raise InputError(f"params.mass must be >= 0 kg; negative for {', '.join(bad)}")
         return params
 
     # ----------------------------------------------------------------- dynamics

@@ -109,7 +109,17 @@ class RobotParams:
         n = self.ratio.shape[0]
         if n == 0:
             raise InputError("ratio is empty: the params need one ratio per joint")
-        self.friction = _vector(self.friction, "friction", n)
+        self.friction = _vector(self.friction, "friction")
+        if self.friction.shape[0] != n:  # name the field that disagrees with the joints
+            named = len(self.joints) if isinstance(self.joints, (list, tuple)) else 0
+            odd = [f for f in ("ratio", "friction") if len(getattr(self, f)) != named]
+            raise InputError(
+                f"{odd[0]} must have {named} entries, one per joint named in joints, got "
+                f"{len(getattr(self, odd[0]))}"
+                if named and len(odd) == 1
+                else f"ratio has {n} entries but friction {self.friction.shape[0]}: both need "
+                "one entry per joint"
+            )
         if np.any(self.ratio <= 0):
             bad = np.flatnonzero(self.ratio <= 0).tolist()
             raise InputError(f"ratio must be positive (A per N m); joint index(es) {bad} are not")

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
+import importlib.util
 import json
 import math
 from types import SimpleNamespace
@@ -23,6 +25,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from jaxcomp.cli import main as cli_main
 from jaxcomp.cli.control import _target_marker, parse_push
 from jaxcomp.cli.group import cli
 from jaxcomp.control import (
@@ -33,8 +36,9 @@ from jaxcomp.control import (
 )
 from jaxcomp.control.loop import ArmMount, arm_model, arm_params, run_control
 from jaxcomp.control.timing import CycleTimer
-from jaxcomp.control.trajectory import parse_trajectory
+from jaxcomp.control.trajectory import Trajectory, parse_trajectory
 from jaxcomp.control.watchdog import Watchdog, WatchdogTrip
+from jaxcomp.control.workspace import arm_reach
 from jaxcomp.errors import InputError
 from jaxcomp.hardware import (
     ArmState,
@@ -595,3 +599,156 @@ def test_viewer_target_marker():
     hook(20, None, None, np.array([0.1, 0.2, 0.3]))
     assert scene.ngeom == 1
     np.testing.assert_allclose(scene.geoms[0].pos, [0.1, 0.2, 0.3])
+
+
+# ----------------------------------------------------------------------------- runs that cannot
+# do what was asked: refused up front, or ended with a named reason and status 1
+
+
+def test_the_reach_bounds_every_pose_and_is_tight():
+    """The reach (from the kinematic chain) is never exceeded by a sampled pose, and some
+    pose comes within 2 % of it (the Gen3 Lite's is about 0.91 m)."""
+    reach = arm_reach(ARM, "end_effector")
+    m = ARM.model
+    d = mujoco.MjData(m)
+    site = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, "end_effector")
+    lo, hi = ARM.joint_limits.T
+    rng = np.random.default_rng(0)
+    far = 0.0
+    for _ in range(3000):
+        d.qpos[:] = rng.uniform(np.maximum(lo, -np.pi), np.minimum(hi, np.pi))
+        mujoco.mj_kinematics(m, d)
+        far = max(far, float(np.linalg.norm(d.site_xpos[site] - reach.origin)))
+    assert far <= reach.radius and far > 0.98 * reach.radius
+    np.testing.assert_allclose(reach.origin[:2], 0.0, atol=1e-9)  # on joint_0's vertical axis
+
+
+def test_farthest_target_is_exact_and_stops_at_the_run_end():
+    """``Trajectory.farthest`` of lines and arcs (exact) is never nearer than the 10 ms
+    samples of the generic method and within 10 um of them; only targets up to ``until``."""
+    rng = np.random.default_rng(3)
+    start = np.array([0.4, 0.1, 0.3])
+    for spec in ("circle:r=0.2,v=0.1", "circle:r=0.1,cx=0.5,cy=0.3,turns=1", "half-circle"):
+        traj = parse_trajectory(spec).build(start)
+        for _ in range(5):
+            p, until = rng.normal(size=3), rng.uniform(0.5, 20.0)
+            exact = np.linalg.norm(traj.farthest(p, until) - p)
+            sampled = np.linalg.norm(Trajectory.farthest(traj, p, until) - p)
+            assert sampled - 1e-12 <= exact < sampled + 1e-5
+    line = parse_trajectory("line:dx=1,v=0.1,a=1").build(start)  # 0.05 m ramp, then 0.1 m/s
+    np.testing.assert_allclose(line.farthest(start, 2.05), start + [0.2, 0, 0], atol=1e-12)
+
+
+def test_unreachable_targets_are_refused_before_anything_is_switched(controller, tmp_path):
+    """The issue's circle (r 5 m, 0.3 m/s) in guidance mode and a far static target with the
+    arm alone: InputError naming the reach, the arm untouched, no output folder."""
+    sim = _sim()
+    out = tmp_path / "run"
+    with pytest.raises(InputError, match=r"beyond its reach of 0\.91\d m"):
+        run_control(sim.arm, sim.base, controller, "guidance", "circle:r=5,v=0.3", None, out)
+    alone = _sim(ARM)
+    with pytest.raises(InputError, match=r"1\.100 m from the base of gen3_lite's arm"):
+        run_control(alone.arm, None, controller, "tracking", "static:x=0,y=1.1,z=0.12825", 1, out)
+    assert all(m is ControlMode.POSITION for m in sim.modes + alone.modes)
+    assert not out.exists()
+
+
+def test_a_run_that_does_not_track_ends_not_tracking(controller, tmp_path):
+    """A target the end effector stays more than max_error from for max_error_time ends the
+    run (not ok) after that time, in position mode."""
+    sim = _sim(ARM)
+    result = run_control(
+        sim.arm, None, controller, "tracking", "static:dx=0.02", 1.0, tmp_path,
+        max_error=0.005, max_error_time=0.05,
+    )  # fmt: skip
+    assert result.kind == "not_tracking" and not result.ok
+    assert "more than 5 mm from its target for 0.05 s" in result.reason
+    assert result.cycles == 50 and result.max_error > 0.005  # 51 checks, the first at t = 0
+    _assert_safe(sim)
+
+
+def test_watchdog_counts_the_cycles_off_target():
+    wd = Watchdog(["j0"], 2.0, max_error=0.1, max_error_cycles=3)
+    for err in (0.2, 0.2, 0.2, 0.05, 0.2, 0.2, 0.2):  # three in a row, then reset
+        wd.check_error(err, 0.0)
+    with pytest.raises(WatchdogTrip, match="not tracking") as exc:
+        wd.check_error(0.2, 0.007)
+    assert exc.value.kind == "not_tracking"
+    Watchdog(["j0"], 2.0).check_error(1e9)  # off by default
+
+
+def test_a_simulator_instability_is_named_and_the_arm_held(controller, tmp_path):
+    """A force MuJoCo cannot integrate (slipped past the push bound): the run ends as a
+    hardware fault naming the simulator's instability, arm in position mode, holding."""
+    sim = _sim(ARM)
+    sim.interaction.add_push(0.05, 1.0, (1e9, 0.0, 0.0))
+    result = run_control(sim.arm, None, controller, "guidance", None, 0.5, tmp_path)
+    assert result.kind == "hardware_fault" and "simulator unstable" in result.reason
+    assert result.cycles == 51 and not sim.interaction.pushes
+    _assert_safe(sim)
+
+
+def _main(argv, monkeypatch, capsys) -> tuple[int, str, str]:
+    """(status, stdout, stderr) of ``jaxcomp ARGV`` run as the console script."""
+    monkeypatch.setattr("sys.argv", ["jaxcomp", *argv])
+    monkeypatch.setenv("JAXCOMP_CACHE", "off")  # no persistent XLA cache from this process
+    with pytest.raises(SystemExit) as exc:
+        cli_main()
+        raise SystemExit(0)
+    out = capsys.readouterr()
+    return exc.value.code, out.out, out.err
+
+
+def _digests(folder) -> dict:
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in folder.iterdir()}
+
+
+def _short_ratio(folder):
+    data = RobotParams.nominal(ARM).to_dict()
+    data["ratio"] = data["ratio"][:5]
+    path = folder / "short.json"
+    path.write_text(json.dumps(data))
+    return str(path)
+
+
+GEN3_LITE = ["control", "--model", "gen3_lite"]
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        ([*GEN3_LITE, "--trajectory", "circle:r=5,v=0.3"], "beyond its reach of 0.914 m"),
+        ([*GEN3_LITE, "--push", "100,1,10,0,0", "--duration", "3"], "starts at 100 s, after"),
+        ([*GEN3_LITE, "--push", "1,1,1e9,0,0"], "beyond 396 N, 10 times the weight of"),
+        ([*GEN3_LITE, "--params", "SHORT"], "ratio must have 6 entries, one per joint"),
+        (["control", "--robot", "kortex"], "needs Kinova's kortex_api"),
+        (["calibrate", "--robot", "kortex", "--plan", "short"], "needs Kinova's kortex_api"),
+    ],
+)
+def test_cli_refuses_runs_that_cannot_work_with_one_error_line(
+    argv, message, tmp_path, monkeypatch, capsys
+):
+    """Status 2, one `error:` line naming the problem, no traceback, and the files of the
+    output folder as they were."""
+    if "kortex" in argv and importlib.util.find_spec("kortex_api") is not None:
+        pytest.skip("kortex_api is installed")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "recording.npz").write_bytes(b"an earlier run")
+    before = _digests(out)
+    argv = [_short_ratio(tmp_path) if a == "SHORT" else a for a in argv]
+    status, _, err = _main([*argv, "--out", str(out)], monkeypatch, capsys)
+    lines = err.strip().splitlines()
+    assert status == 2, err
+    assert [x for x in lines if x.startswith("error:")] == [lines[-1]] and message in lines[-1]
+    assert "Traceback" not in err
+    assert _digests(out) == before
+
+
+def test_cli_run_that_does_not_track_ends_with_status_1(tmp_path, monkeypatch, capsys):
+    argv = ["control", "--model", "gen3_lite", "--trajectory", "static:dx=0.01"]
+    argv += ["--max-error", "0.005", "--max-error-time", "0.05", "--duration", "0.3"]
+    status, out, err = _main([*argv, "--out", str(tmp_path)], monkeypatch, capsys)
+    assert status == 1
+    assert "ended: not_tracking (not tracking: the end effector stayed more than 5 mm" in out
+    assert "Traceback" not in err and "error:" not in err

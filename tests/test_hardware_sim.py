@@ -196,6 +196,27 @@ def test_scripted_push_acts_only_in_its_window():
     np.testing.assert_allclose(after, base, atol=5e-3)
 
 
+@pytest.mark.parametrize("model", ["gen3_lite", "mobile_gen3_lite"])
+def test_forces_beyond_ten_times_the_arms_weight_are_refused(model):
+    """The push bound is 10 g times the mass the arm's first joint carries (the base's own
+    mass does not count): a force just below passes, just above is refused, as is NaN."""
+    sim = Simulator(model)
+    m = sim.model
+    carried = m.body_subtreemass[m.jnt_bodyid[sim.arm_joints[0]]]
+    bound = 10 * 9.81 * carried
+    assert sim.max_push_force == pytest.approx(bound) and 390 < bound < 400
+    sim.push(0.0, 1.0, [0.0, 0.99 * bound, 0.0])
+    sim.set_wrench([0.0, 0.0, -0.99 * bound])
+    for force in ([0.0, 1.01 * bound, 0.0], [1e9, 0.0, 0.0]):
+        with pytest.raises(InputError, match="push force of .* times the weight of"):
+            sim.push(0.0, 1.0, force)
+        with pytest.raises(InputError, match="wrench force of"):
+            sim.set_wrench(force)
+    with pytest.raises(InputError, match="finite vector"):
+        sim.push(0.0, 1.0, [np.nan, 0.0, 0.0])
+    assert len(sim.interaction.pushes) == 1
+
+
 def test_rope_pulls_only_when_stretched():
     rope = Rope(np.zeros(3), free_length=0.26, stiffness=120.0)
     np.testing.assert_array_equal(rope.force(np.array([0.2, 0.0, 0.0])), 0.0)

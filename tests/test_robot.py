@@ -2,6 +2,7 @@
 
 import json
 
+import jax
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -113,6 +114,28 @@ def test_bad_state_and_names(gen3):
         gen3.bias(np.zeros(6), np.zeros(7))
     with pytest.raises(InputError, match="gravity"):
         gen3.gravity(np.zeros(6), gravity=[0, 0])
+
+
+def test_values_that_are_not_numbers_or_not_physical_are_refused(gen3):
+    """Strings instead of arrays, a negative link mass and NaN inertial params: InputError
+    naming the argument (and the link), never a bare ValueError or NaN torques."""
+    with pytest.raises(InputError, match=r"q must be an array of numbers of shape \(6,\)"):
+        gen3.gravity("abcdef")
+    with pytest.raises(InputError, match="gravity must be an array of numbers"):
+        gen3.gravity(np.zeros(6), gravity="down")
+    nominal = gen3.nominal_params()
+    mass = np.array(nominal.mass)
+    mass[gen3.link_index("ARM")] = -0.5
+    with pytest.raises(InputError, match=r"params.mass must be >= 0 kg; negative for ARM"):
+        gen3.gravity(np.zeros(6), nominal._replace(mass=mass))
+    for field in ("mass", "com", "inertia"):
+        bad = np.array(getattr(nominal, field))
+        bad[gen3.link_index("FOREARM")] = np.nan
+        with pytest.raises(InputError, match=f"params.{field} contains NaN.*FOREARM"):
+            gen3.gravity(np.zeros(6), nominal._replace(**{field: bad}))
+    q = np.full(6, 0.3)  # traced params (gradients) are not value-checked: still differentiable
+    grad = jax.grad(lambda m: gen3.gravity(q, nominal._replace(mass=m)).sum())(nominal.mass)
+    assert np.isfinite(grad).all() and np.abs(grad).max() > 0
 
 
 def test_urdf_path_loads(tmp_path):

@@ -9,6 +9,8 @@ import jaxcomp
 from jaxcomp.errors import InputError
 from jaxcomp.robot_params import RobotParams, arm_joint_indices
 
+JOINTS = [f"joint_{i}" for i in range(6)]
+
 
 @pytest.fixture(scope="module")
 def robot():
@@ -66,7 +68,12 @@ def test_save_is_atomic(tmp_path):
     ("change", "match"),
     [
         (lambda d: d.pop("friction"), "missing: friction"),
-        (lambda d: d.update(ratio=[1.0] * 5), "friction must have shape"),
+        (
+            lambda d: d.update(ratio=[1.0] * 5, joints=JOINTS),
+            ": ratio must have 6 entries, one per joint named in joints, got 5$",
+        ),
+        (lambda d: d.update(friction=[0.0] * 7, joints=JOINTS), ": friction must have 6 .*got 7$"),
+        (lambda d: d.update(ratio=[1.0] * 5), ": ratio has 5 entries but friction 6: both need"),
         (
             lambda d: d.update(friction=[0.1, float("nan"), 0.1, 0.1, 0.1, 0.1]),
             "friction contains NaN",

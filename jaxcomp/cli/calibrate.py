@@ -9,6 +9,7 @@ import click
 import numpy as np
 
 from jaxcomp.cli.group import cli
+from jaxcomp.cli.kortex_backend import open_kortex_arm
 from jaxcomp.cli.model_options import joint_names, model_options
 from jaxcomp.errors import InputError
 from jaxcomp.files import check_outputs
@@ -189,9 +190,7 @@ def calibrate(
             sim = Simulator(robot, truth, seed=seed, viewer=viewer)
             arm = sim.arm
         else:
-            from jaxcomp.hardware import KortexArm
-
-            arm = KortexArm(ip, robot=robot)
+            arm = open_kortex_arm(ip, robot=robot)
         try:
             with arm:
                 rec = record(

@@ -7,8 +7,9 @@ import math
 import click
 
 from jaxcomp.cli.group import cli
+from jaxcomp.cli.kortex_backend import open_kortex_arm
 from jaxcomp.cli.model_options import joint_names, model_options
-from jaxcomp.errors import FileError, InputError, JaxcompError, ModelError
+from jaxcomp.errors import FileError, InputError, ModelError
 
 #: The simulated robot when --model is not given: the Gen3 Lite on its Dingo-O base.
 DEFAULT_MODEL = "mobile_gen3_lite"
@@ -121,7 +122,25 @@ def _target_marker(sim):
     multiple=True,
     metavar="START,DURATION,FX,FY,FZ",
     help="Simulated push on the end effector: from START s after the start for DURATION s, "
-    "force (FX, FY, FZ) N in the world frame. Repeatable. Simulator only.",
+    "force (FX, FY, FZ) N in the world frame. Repeatable. Simulator only. START must fall "
+    "within the run, and the force may be at most 10 times the weight of the arm (the links "
+    "its joints move, at 9.81 m/s^2; 396 N for the Gen3 Lite): beyond, the simulation breaks "
+    "down.",
+)
+@click.option(
+    "--max-error",
+    type=float,
+    default=None,
+    help="m: a run whose end effector stays further than this from its target for more than "
+    "--max-error-time s ends early (not_tracking, status 1); default: twice the gains' error "
+    "clip (0.2 m for the Gen3 Lite); inf: never.",
+)
+@click.option(
+    "--max-error-time",
+    type=float,
+    default=2.0,
+    show_default=True,
+    help="s, see --max-error.",
 )
 @click.option(
     "--controller",
@@ -200,6 +219,14 @@ def control(**options) -> None:
     stale or NaN feedback, out-of-range command or Ctrl-C ends the run with the arm in
     position mode and the base stopped. Prints the gains, how the run ended, the RMS tracking
     error (m) and the loop timing. One run at a time writes into --out (a lock file).
+
+    Targets the arm alone must reach (guidance mode, or tracking without a base) are checked
+    against its reach (the sum of its links' lengths) before the run; a run whose end
+    effector stays off its target (see --max-error) ends early.
+
+    Exit status: 0 when the run completed (or was stopped with Ctrl-C); 1 when it ran but
+    ended early (a fault, a watchdog trip, not tracking, the simulator unstable: see the
+    summary's 'ended:' line); 2 on bad input, with one 'error:' line (nothing was run).
     """
     from pathlib import Path
 
@@ -235,6 +262,8 @@ def _control(
     trajectory: str,
     duration: float | None,
     pushes: tuple[str, ...],
+    max_error: float | None,
+    max_error_time: float,
     law: str,
     preset: str,
     stiffness: float | None,
@@ -270,6 +299,10 @@ def _control(
     push_list = [parse_push(p) for p in pushes]
     if duration is not None and not (math.isfinite(duration) and duration > 0):
         raise InputError(f"--duration must be a positive number of s, got {duration}")
+    if max_error is not None and not max_error > 0:
+        raise InputError(f"--max-error must be > 0 m (inf: never), got {max_error}")
+    if not (math.isfinite(max_error_time) and max_error_time > 0):
+        raise InputError(f"--max-error-time must be a positive number of s, got {max_error_time}")
     changes = {}
     if stiffness is not None:
         changes["stiffness"] = stiffness
@@ -326,18 +359,17 @@ def _control(
                 raise ModelError(f"{robot.name} has no arm joints: nothing to control")
             sim = Simulator(robot, seed=seed, viewer=viewer, initial_pose="home")
             arm = sim.arm
+            for text, (start, length, force) in zip(pushes, push_list, strict=True):
+                try:  # the simulator's clock starts with the run
+                    sim.push(sim.t + start, length, force)
+                except InputError as exc:
+                    raise InputError(f"--push {text}: {exc}") from None
             base = sim.base if sim.has_base else None
         else:
-            from jaxcomp.hardware import DingoBase, KortexArm
+            from jaxcomp.hardware import DingoBase
 
-            try:  # the loop paces the cycles itself (absolute 1 kHz deadlines)
-                arm = KortexArm(ip, robot="gen3_lite", pace=False)
-            except JaxcompError:
-                raise
-            except ImportError as exc:
-                raise JaxcompError(str(exc)) from None
-            except Exception as exc:  # noqa: BLE001 - transport errors of kortex_api
-                raise JaxcompError(f"cannot open the arm at {ip}: {exc}") from None
+            # the loop paces the cycles itself (absolute 1 kHz deadlines)
+            arm = open_kortex_arm(ip, robot="gen3_lite", pace=False)
             try:
                 base = DingoBase()
             except ImportError as exc:
@@ -351,9 +383,6 @@ def _control(
             params = _arm_params(params, params_file, robot, arm_robot)
         if controller is None:
             controller = make_controller(arm_robot, params)
-        if sim is not None:
-            for start, length, force in push_list:
-                sim.push(sim.t + start, length, force)
         mount = ArmMount.from_model(robot) if base is not None else ArmMount()
         marker = _target_marker(sim) if sim is not None else None
         with realtime_priority(rt_priority if realtime and rt_priority else None):
@@ -369,6 +398,9 @@ def _control(
                 mount=mount,
                 model=_model_name(robot),
                 on_cycle=marker,
+                max_error=max_error,
+                max_error_time=max_error_time,
+                before_start=lambda length: _check_pushes(pushes, push_list, length),
             )
     finally:
         if sim is not None:
@@ -396,6 +428,17 @@ def _arm_params(params, params_file: str | None, robot, arm_robot):
             f"{params_file}: the params are for model {params.model!r}, the robot is {robot.name!r}"
         )
     return arm_params(params, arm_robot).check(arm_robot)
+
+
+def _check_pushes(texts, pushes, duration: float) -> None:
+    """InputError for a push (``parse_push``'s, from the option ``texts``) that starts at
+    or after the end of a run of ``duration`` s: it would never act."""
+    for text, (start, _, _) in zip(texts, pushes, strict=True):
+        if start >= duration:
+            raise InputError(
+                f"--push {text}: starts at {start:g} s, after the run ends at {duration:g} s "
+                "(--duration, else the trajectory's length or 10 s)"
+            )
 
 
 def _chosen_joints(text: str | None, params, params_file: str | None) -> list[str] | None:
