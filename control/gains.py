@@ -19,7 +19,7 @@ import numpy as np
 
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
-from jaxcomp.hardware.interface import current_limits
+from jaxcomp.robot_params import current_limits
 
 if TYPE_CHECKING:
     from jaxcomp.robot import Robot
@@ -159,7 +159,7 @@ class ImpedanceGains:
             clip(x / friction_band, -1, 1), continuous at x = 0, so a joint at rest whose torque
             hovers around zero is not kicked by +-l every cycle (0 = the paper's hard sign).
         current_limit: A, magnitude per joint; None = the model's
-            (``jaxcomp.hardware.interface.current_limits``: its ``jaxcomp_current_limit``
+            (``jaxcomp.robot_params.current_limits``: its ``jaxcomp_current_limit``
             custom numeric (Gen3 Lite: 11 A), else effort limit x nominal ratio, else 11 A).
         current_rate_limit: A/s, one or per joint, the most a joint's current may change per
             second (default 2000 A/s = 2 A per 1 ms cycle: a full-scale 11 A step takes 5.5 ms,

@@ -55,6 +55,7 @@ from jaxcomp.current import friction_current
 from jaxcomp.errors import InputError
 from jaxcomp.kinematic_tree import KinematicTree
 from jaxcomp.params import InertialParams
+from jaxcomp.plausibility import check_params
 from jaxcomp.robot import Robot
 from jaxcomp.robot_params import RobotParams
 
@@ -270,6 +271,7 @@ def _resolve(
         raise InputError(f"params must be a RobotParams or None, got {type(params).__name__}")
     if params.model != robot.name:
         raise InputError(f"params are for model {params.model!r}, the robot is {robot.name!r}")
+    check_params(params, robot)  # nothing implausible reaches the arm
     inertial = InertialParams(*(np.asarray(x, dtype=float) for x in params.inertial_params(robot)))
     return ResolvedModel(
         tree=robot.tree,

@@ -44,8 +44,8 @@ import numpy as np
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.control.gains import IMPEDANCE_PRESETS, ImpedanceGains, check_fixed_base
 from jaxcomp.errors import InputError, ModelError
-from jaxcomp.hardware.interface import DEFAULT_CURRENT_LIMIT, current_limits
 from jaxcomp.robot import Robot
+from jaxcomp.robot_params import DEFAULT_CURRENT_LIMIT, current_limits
 
 #: kg: the Gen3 Lite's apparent mass (smallest eigenvalue of Lambda) at its home pose.
 REFERENCE_APPARENT_MASS = 0.1203

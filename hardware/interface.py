@@ -25,9 +25,7 @@ from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError, JaxcompError
 from jaxcomp.hardware.mecanum import TwistLimits
 from jaxcomp.reduction import BASE_JOINTS
-
-#: A: motor current limit of a joint whose model declares neither a current nor an effort limit.
-DEFAULT_CURRENT_LIMIT = 11.0
+from jaxcomp.robot_params import current_limits
 
 
 class ControlMode(enum.Enum):
@@ -145,32 +143,6 @@ class ArmLimits:
             effort=robot.effort_limits[idx].copy(),
             switch_speed=switch_speed,
         )
-
-
-def current_limits(robot) -> np.ndarray:
-    """(n,) A: the motor current magnitude limit of each current-controlled joint of ``robot``
-    (its joints less a mobile base's): the model's ``jaxcomp_current_limit`` custom numeric (one
-    value for every joint, or per joint: ``Robot.joint_numeric``), else, for a joint it gives
-    none, the joint's effort limit (N m) times its nominal current/torque ratio
-    (``RobotParams.nominal``: ``jaxcomp_nominal_ratio``, else 1 A/(N m)), else, for a joint with
-    no effort limit either, ``DEFAULT_CURRENT_LIMIT`` (the Gen3 Lite declares 11 A)."""
-    from jaxcomp.robot_params import RobotParams, arm_joint_indices
-
-    arm = arm_joint_indices(robot)
-    effort = robot.effort_limits[arm]
-    derived = np.where(
-        np.isfinite(effort), effort * RobotParams.nominal(robot).ratio, DEFAULT_CURRENT_LIMIT
-    )
-    declared = robot.joint_numeric("jaxcomp_current_limit")
-    if declared is None:
-        return derived
-    given = ~np.isnan(declared)
-    if not np.all(np.isfinite(declared[given]) & (declared[given] > 0)):
-        raise InputError(
-            f"{robot.name}: custom numeric jaxcomp_current_limit must hold positive currents "
-            f"(A), got {declared.tolist()}"
-        )
-    return np.where(given, declared, derived)
 
 
 def _array(value, name: str, n: int, joints: Sequence[str]) -> np.ndarray:

@@ -14,7 +14,7 @@ The truth is relative to the model's own figures (``TrueRobot.draw``):
 - Otherwise ratios are the nominal ratio (``RobotParams.nominal``: the model's
   ``jaxcomp_nominal_ratio``, else ``DEFAULT_RATIO``, 1 A/(N m)) times U(``RATIO_SPREAD``), and
   friction losses and current noise scale with each joint's current limit
-  (``jaxcomp.hardware.interface.current_limits``: the model's ``jaxcomp_current_limit``, else
+  (``jaxcomp.robot_params.current_limits``: the model's ``jaxcomp_current_limit``, else
   the effort limit times the nominal ratio, else ``DEFAULT_CURRENT_LIMIT``, 11 A). A joint whose
   current limit is 11 A (the Gen3 Lite's) gets friction losses U(``FRICTION_LOSS``) = U(0.2,
   0.6) A, 2-5 % of its limit, and the current noise ``DEFAULT_CURRENT_NOISE`` (0.05 A); other
@@ -35,9 +35,15 @@ import mujoco
 import numpy as np
 
 from jaxcomp.errors import InputError, ModelError
-from jaxcomp.hardware.interface import DEFAULT_CURRENT_LIMIT, current_limits
 from jaxcomp.robot import Robot
-from jaxcomp.robot_params import RobotParams, _vector, arm_joint_indices, arm_joint_names
+from jaxcomp.robot_params import (
+    DEFAULT_CURRENT_LIMIT,
+    RobotParams,
+    _vector,
+    arm_joint_indices,
+    arm_joint_names,
+    current_limits,
+)
 
 #: Ratios (A/(N m)) and friction losses (A) identified on the paper's real arm, joints 0..5
 #: (the Gen3 Lite models state them as ``jaxcomp_sim_ratio`` and ``jaxcomp_sim_friction``).

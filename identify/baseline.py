@@ -33,6 +33,7 @@ from scipy.spatial.transform import Rotation
 from jaxcomp.errors import InputError
 from jaxcomp.identify.bins import BIN_WIDTH, SweepBins, bin_sweeps
 from jaxcomp.params import InertialParams
+from jaxcomp.plausibility import check_recordings
 from jaxcomp.recording import Recording
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import RobotParams, arm_joint_indices, arm_joint_names
@@ -220,6 +221,7 @@ def fit_baseline(
     bins: SweepBins | None = None,
     threshold: float = AMPLITUDE_THRESHOLD,
     width: float = BIN_WIDTH,
+    complete: bool = True,
 ) -> RobotParams:
     """The paper's calibration of ratios, friction losses and COM phase shifts (method "scipy").
 
@@ -230,6 +232,9 @@ def fit_baseline(
         threshold: N m, least model gravity-torque amplitude over a sweep for its joint to
             count as excited (phase shift and Eq. 13); others borrow their type's ratio.
         width: angle-bin width, rad.
+        complete: refuse (InputError) a recording that is implausible or does not sweep every
+            joint both ways (``plausibility.check_recordings``). False: a joint without sweeps
+            borrows its type's ratio and friction, as the studies' random plans need.
     Returns:
         ``RobotParams`` of ``robot.name`` (= ``rec.model`` for a built-in): ratio A/(N m),
         friction A, com_offset {link: (3,) m vs the robot's nominal, link frame} of the links
@@ -245,6 +250,8 @@ def fit_baseline(
             f"recording has {rec.n_joints} joints but {robot.name} has {n} current-controlled "
             "joints"
         )
+    if complete:
+        check_recordings([rec])
     if bins is None:
         bins = bin_sweeps(rec, width)
     types = _actuator_types(robot, n)

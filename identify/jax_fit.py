@@ -80,6 +80,8 @@ from jaxcomp.identify.moments import (
     sweep_moments,
     z_index,
 )
+from jaxcomp.params import gyration_radii
+from jaxcomp.plausibility import check_recordings, recording_problems
 from jaxcomp.recording import Recording
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import RobotParams, arm_joint_indices, arm_joint_names
@@ -260,10 +262,7 @@ def default_com_prior(robot: Robot, link_ids: np.ndarray) -> np.ndarray:
         if not (np.isfinite(value) and value > 0):
             raise InputError(f"{robot.name}: jaxcomp_com_prior must be a length > 0 m, got {value}")
         return np.full(len(link_ids), value)
-    p = robot.nominal_params()
-    mass = np.asarray(p.mass)[link_ids]
-    trace = np.trace(np.asarray(p.inertia)[link_ids], axis1=-2, axis2=-1)
-    gyration = np.sqrt(np.maximum(trace, 0.0) / (2.0 * np.maximum(mass, 1e-12)))
+    gyration = gyration_radii(robot.nominal_params())[link_ids]
     return np.maximum(PRIOR_COM_FRACTION * gyration, PRIOR_COM_MIN)
 
 
@@ -822,15 +821,21 @@ def fit(
     recordings: Recording | list[Recording],
     max_iter: int = 50,
     com_prior: float | None = None,
+    complete: bool = True,
 ) -> RobotParams:
     """Fit one parameter set to one or several recordings of one robot, jointly.
 
     The recordings may differ in gravity (mounting) and payload. ``com_prior``: m, the COM
-    prior on every link (default: the model's, ``default_com_prior``). Raises ``FitError``
-    when the fit does not converge.
+    prior on every link (default: the model's, ``default_com_prior``). ``complete``: refuse
+    (InputError) recordings that are implausible or do not sweep every joint both ways
+    (``plausibility.check_recordings``); False: an unswept joint keeps zero friction with an
+    error bar of the prior's width (the studies' random plans sweep a subset). Raises
+    ``FitError`` when the fit does not converge.
     """
     recs = [recordings] if isinstance(recordings, Recording) else list(recordings)
     model = _check_same_model(recs).with_com_prior(com_prior)
+    if complete:
+        check_recordings(recs)
     start = time.perf_counter()
     prepared = [prepare(model, r) for r in recs]
     st = prepared[0][0]
@@ -931,7 +936,7 @@ def fit_each(
                 failed.append(len(out) + len(failed))
         bar.update(len(chunk))
 
-    pending = None
+    pending, seen = None, 0
     with ThreadPoolExecutor(workers) as pool:
         for chunk in _chunks(recordings, batch):
             if model is None:
@@ -939,6 +944,10 @@ def fit_each(
                 model = fit_model(name, com_prior)
             if any(r.model != name for r in chunk):
                 raise InputError("fit_each needs recordings of one robot model")
+            for i, rec in enumerate(chunk):
+                if problems := recording_problems([rec]):
+                    raise InputError(f"recording {seen + i}: {'; '.join(problems)}")
+            seen += len(chunk)
             start = time.perf_counter()
             groups = [chunk[i : i + group] for i in range(0, len(chunk), group)]
             packed, length = _join(list(pool.map(send, groups)), batch)

@@ -4,6 +4,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 class InertialParams(NamedTuple):
@@ -43,3 +44,11 @@ def add_point_mass(params: InertialParams, body: int, mass, point) -> InertialPa
     return InertialParams(
         mass_all.at[body].set(total), com_all.at[body].set(com), inertia_all.at[body].set(inertia)
     )
+
+
+def gyration_radii(params: InertialParams) -> np.ndarray:
+    """(nb,) m: each link's radius of gyration about its centre of mass, sqrt(trace(I) / 2 m)
+    (a uniform rod of length L: 0.29 L); 0 for a massless link."""
+    mass = np.asarray(params.mass, float)
+    trace = np.trace(np.asarray(params.inertia, float), axis1=-2, axis2=-1)
+    return np.sqrt(np.maximum(trace, 0.0) / (2.0 * np.maximum(mass, 1e-12))) * (mass > 0)

@@ -48,6 +48,8 @@ BASE_JOINTS = BASE_JOINTS
 _REQUIRED = ("model", "ratio", "friction")
 #: A/(N m), the nominal current/torque ratio of a joint whose model states none.
 DEFAULT_RATIO = 1.0
+#: A: motor current limit of a joint whose model declares neither a current nor an effort limit.
+DEFAULT_CURRENT_LIMIT = 11.0
 
 
 def arm_joint_indices(robot: Robot) -> np.ndarray:
@@ -272,9 +274,37 @@ class RobotParams:
         if not path.is_file():
             raise InputError(f"params file not found: {path}")
         try:
-            return cls.from_json(path.read_text(), robot)
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            raise InputError(f"{path}: not a params file (not UTF-8 JSON text)") from None
+        try:
+            return cls.from_json(text, robot)
         except InputError as exc:
             raise InputError(f"{path}: {exc}") from None
+
+
+def current_limits(robot: Robot) -> np.ndarray:
+    """(n,) A: the motor current magnitude limit of each current-controlled joint of ``robot``
+    (its joints less a mobile base's): the model's ``jaxcomp_current_limit`` custom numeric (one
+    value for every joint, or per joint: ``Robot.joint_numeric``), else, for a joint it gives
+    none, the joint's effort limit (N m) times its nominal current/torque ratio
+    (``RobotParams.nominal``: ``jaxcomp_nominal_ratio``, else 1 A/(N m)), else, for a joint with
+    no effort limit either, ``DEFAULT_CURRENT_LIMIT`` (the Gen3 Lite declares 11 A)."""
+    arm = arm_joint_indices(robot)
+    effort = robot.effort_limits[arm]
+    derived = np.where(
+        np.isfinite(effort), effort * RobotParams.nominal(robot).ratio, DEFAULT_CURRENT_LIMIT
+    )
+    declared = robot.joint_numeric("jaxcomp_current_limit")
+    if declared is None:
+        return derived
+    given = ~np.isnan(declared)
+    if not np.all(np.isfinite(declared[given]) & (declared[given] > 0)):
+        raise InputError(
+            f"{robot.name}: custom numeric jaxcomp_current_limit must hold positive currents "
+            f"(A), got {declared.tolist()}"
+        )
+    return np.where(given, declared, derived)
 
 
 def _jsonable(value: Any) -> Any:

@@ -734,7 +734,7 @@ def test_cli_refuses_runs_that_cannot_work_with_one_error_line(
         pytest.skip("kortex_api is installed")
     out = tmp_path / "out"
     out.mkdir()
-    (out / "recording.npz").write_bytes(b"an earlier run")
+    (out / "notes.txt").write_text("the user's own file")
     before = _digests(out)
     argv = [_short_ratio(tmp_path) if a == "SHORT" else a for a in argv]
     status, _, err = _main([*argv, "--out", str(out)], monkeypatch, capsys)

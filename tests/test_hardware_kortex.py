@@ -418,7 +418,6 @@ def test_host_jitter_is_reported_and_a_late_send_is_a_missed_cycle():
     _assert_safe_and_closed(emu)
 
 
-@pytest.mark.xfail(strict=False, reason="needs params plausibility")
 def test_the_real_arm_path_refuses_implausible_params_before_any_current(
     tmp_path, monkeypatch, capsys
 ):

@@ -297,7 +297,7 @@ def test_batched_moments_and_fits_are_the_single_recording_ones(robot, tiny_plan
     # estimates agree far inside the standard errors (~1e-3 relative), not bit for bit.
     model = jax_fit.fit_model(robot)
     fit = jax_fit.fit_batch(model, res.moments, mesh=sim.mesh)  # as the study fits
-    want = jax_fit.fit(rec)
+    want = jax_fit.fit(rec, complete=False)  # the tiny plan sweeps joints 1-4
     np.testing.assert_allclose(fit.solution.ratio[0], want.ratio, rtol=1e-6)
     np.testing.assert_allclose(fit.solution.friction[0], want.friction, rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(fit.std[0, :6], want.std["ratio"], rtol=1e-6)
@@ -451,12 +451,12 @@ def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, tiny_p
         np.testing.assert_array_equal(seg.signals[k].joint[a - f :], signal.joint[a:b])
         np.testing.assert_array_equal(seg.start[k], signal.q_ref[f - 1] if f else start)
 
-    truth = sc.draw_truth(robot, 2, SEED, sc.TruthSpread(noise=0.0))
+    truth = sc.draw_truth(robot, 1, SEED, sc.TruthSpread(noise=0.0))
     sim = sc.simulator(None)
-    kw = dict(seed=SEED, every=10, keep=2)
+    kw = dict(seed=SEED, every=10, keep=1)
     turn = sc.simulate(sim, truth, signal, world_batch=1, **kw)
-    side = sc.simulate(sim, truth, signal, world_batch=2, parallel=True, **kw)
-    assert side.world_steps == 2 * 4 * (len(seg.q_ref) + 500)
+    side = sc.simulate(sim, truth, signal, world_batch=1, parallel=True, **kw)
+    assert side.world_steps == 4 * (len(seg.q_ref) + 500)
     np.testing.assert_array_equal(side.fault_step, turn.fault_step)
     for a, b in zip(side.recordings, turn.recordings, strict=True):
         np.testing.assert_array_equal(a.t, b.t)

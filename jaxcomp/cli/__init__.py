@@ -7,6 +7,7 @@ the package imports them all. Heavy imports happen inside the commands, so ``--h
 from jaxcomp.cli import (  # noqa: F401  (registers the commands)
     bench,
     calibrate,
+    check,
     control,
     info,
     models,

@@ -18,18 +18,24 @@ _METHODS = ("jax", "scipy")
 
 
 def _fit(recordings, method: str, com_prior: float | None = None):
+    """The params ``method`` fits to ``recordings``, refused (InputError) when implausible
+    (``plausibility.check_params``)."""
+    from jaxcomp.plausibility import check_params
+
     if method == "jax":
         from jaxcomp.identify.jax_fit import fit
 
-        return fit(recordings, com_prior=com_prior)
-    from jaxcomp.identify.baseline import fit_baseline
+        params = fit(recordings, com_prior=com_prior)
+    else:
+        from jaxcomp.identify.baseline import fit_baseline
 
-    if len(recordings) > 1:
-        raise InputError(
-            "--method scipy fits one recording (the paper's per-joint fit); use --method jax "
-            "to fit several recordings jointly, or --each"
-        )
-    return fit_baseline(recordings[0])
+        if len(recordings) > 1:
+            raise InputError(
+                "--method scipy fits one recording (the paper's per-joint fit); use --method "
+                "jax to fit several recordings jointly, or --each"
+            )
+        params = fit_baseline(recordings[0])
+    return check_params(params, recordings[0].robot(), f"the {method} fit's params")
 
 
 def _warn(params) -> None:
@@ -336,8 +342,12 @@ def _fit_into(recordings, method, each, out_file, plot_file, com_prior) -> None:
     if each:
         if method == "jax":
             from jaxcomp.identify.jax_fit import fit_each
+            from jaxcomp.plausibility import check_params
 
             results = fit_each(recs, progress=True, com_prior=com_prior)
+            robot = recs[0].robot()
+            for k, p in enumerate(results):
+                check_params(p, robot, f"the jax fit's params of recording {k}")
         else:
             results = [_fit([r], "scipy") for r in recs]
         with writing(out_file):

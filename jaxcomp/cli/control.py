@@ -357,6 +357,8 @@ def _control(
             robot = _load_model(model, chosen, site, from_params, params_file)
             if not len(arm_joint_indices(robot)):
                 raise ModelError(f"{robot.name} has no arm joints: nothing to control")
+            if params is not None:  # checked before anything is built
+                params = _arm_params(params, params_file, robot, arm_model(robot))
             sim = Simulator(robot, seed=seed, viewer=viewer, initial_pose="home")
             arm = sim.arm
             for text, (start, length, force) in zip(pushes, push_list, strict=True):
@@ -379,7 +381,7 @@ def _control(
             if base is not None:
                 robot = load_robot(mobile_model_name(robot))
         arm_robot = arm_model(robot)
-        if params is not None:
+        if params is not None and sim is None:
             params = _arm_params(params, params_file, robot, arm_robot)
         if controller is None:
             controller = make_controller(arm_robot, params)
@@ -418,7 +420,7 @@ def _control(
 
 def _arm_params(params, params_file: str | None, robot, arm_robot):
     """``params`` for the arm-alone model ``arm_robot`` of ``robot``, checked as the
-    controller checks them (``RobotParams.check``); InputError when they name another model
+    controller checks them (``plausibility.check_params``); InputError when they name another model
     (a fit names the model as its recording does: by name or by file) or do not fit."""
     from jaxcomp.control.loop import arm_params
 
@@ -427,7 +429,9 @@ def _arm_params(params, params_file: str | None, robot, arm_robot):
         raise InputError(
             f"{params_file}: the params are for model {params.model!r}, the robot is {robot.name!r}"
         )
-    return arm_params(params, arm_robot).check(arm_robot)
+    from jaxcomp.plausibility import check_params
+
+    return check_params(arm_params(params, arm_robot), arm_robot, f"the params in {params_file}")
 
 
 def _check_pushes(texts, pushes, duration: float) -> None:

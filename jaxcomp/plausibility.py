@@ -1,0 +1,162 @@
+"""Physical plausibility of recordings and params: what no real current-controlled arm gives.
+
+Each check is one bound, stated here and in README. A value outside it is refused with one
+error that names the joint or link, the value and the bound (``InputError``):
+
+- ratio (A/(N m)): within ``RATIO_RANGE``; and where the model states its joints' scale (a
+  ``jaxcomp_nominal_ratio``, or a ``jaxcomp_current_limit`` with an effort limit: ratio ~
+  current limit / effort limit), within ``SCALE_FACTOR`` of that scale;
+- friction loss (A): at most the joint's current limit (``robot_params.current_limits``): a
+  joint whose friction takes all of its current cannot move;
+- COM offset (m, link frame): at most ``COM_SIZE`` radii of gyration of the link
+  (``params.gyration_radii``), and at least ``COM_MIN`` is always allowed;
+- recorded current (A): at most ``CURRENT_FACTOR`` times the joint's current limit where the
+  model states the scale (a current in mA breaks it), and a swept joint's current not zero
+  (RMS over its own sweeps at least ``ZERO_CURRENT`` of its current limit);
+- coverage: every current-controlled joint swept in both directions (``MIN_SAMPLES`` samples
+  each) in at least one of the recordings fitted together, so that its friction can be told
+  from its gravity torque.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from jaxcomp.errors import InputError
+from jaxcomp.params import gyration_radii
+from jaxcomp.recording import Recording
+from jaxcomp.robot import Robot
+from jaxcomp.robot_params import RobotParams, arm_joint_indices, arm_joint_names, current_limits
+
+#: A/(N m): the physical range of a joint's current/torque ratio, from large industrial
+#: joints (~0.01) to small hobby servos (~10).
+RATIO_RANGE = (1e-3, 1e2)
+#: A ratio within this factor of the scale the model states for the joint.
+SCALE_FACTOR = 10.0
+#: A COM offset of at most this many radii of gyration of its link ...
+COM_SIZE = 2.0
+#: ... and at least this, m, on any link.
+COM_MIN = 0.02
+#: Recorded currents of at most this many times the joint's current limit.
+CURRENT_FACTOR = 2.0
+#: A swept joint's RMS current over its own sweeps, as a fraction of its current limit, below
+#: which it counts as not recorded.
+ZERO_CURRENT = 1e-3
+#: Samples a joint needs in each direction of its own sweeps.
+MIN_SAMPLES = 20
+
+
+def stated_scale(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
+    """((n,) A/(N m), (n,) bool): each current-controlled joint's ratio scale and whether the
+    model states it: its ``jaxcomp_nominal_ratio``, else its ``jaxcomp_current_limit`` over
+    its effort limit (both finite), else unstated (scale 1 A/(N m))."""
+    limits = current_limits(robot)
+    effort = robot.effort_limits[arm_joint_indices(robot)]
+    nominal = robot.joint_numeric("jaxcomp_nominal_ratio")
+    declared = robot.joint_numeric("jaxcomp_current_limit")
+    has_ratio = np.zeros(len(limits), bool) if nominal is None else np.isfinite(nominal)
+    has_limit = np.zeros(len(limits), bool) if declared is None else np.isfinite(declared)
+    by_limit = has_limit & np.isfinite(effort) & (effort > 0)
+    scale = np.where(has_ratio, RobotParams.nominal(robot).ratio, 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(~has_ratio & by_limit, limits / effort, scale)
+    return scale, has_ratio | by_limit
+
+
+def params_problems(params: RobotParams, robot: Robot) -> list[str]:
+    """What in ``params`` (already ``check``-ed against ``robot``) is physically implausible,
+    one sentence each; empty when nothing is."""
+    names = arm_joint_names(robot)
+    out = []
+    lo, hi = RATIO_RANGE
+    scale, stated = stated_scale(robot)
+    limits = current_limits(robot)
+    for j, (r, f) in enumerate(zip(params.ratio, params.friction, strict=True)):
+        if not lo <= r <= hi:
+            out.append(
+                f"the ratio of {names[j]} is {r:.3g} A/(N m), outside the physical range "
+                f"{lo:g}-{hi:g} A/(N m)"
+            )
+        elif stated[j] and not scale[j] / SCALE_FACTOR <= r <= scale[j] * SCALE_FACTOR:
+            out.append(
+                f"the ratio of {names[j]} is {r:.3g} A/(N m), more than {SCALE_FACTOR:g} times "
+                f"off the {scale[j]:.3g} A/(N m) that {robot.name} states"
+            )
+        if f > limits[j]:
+            out.append(
+                f"the friction loss of {names[j]} is {f:.3g} A, more than its current limit "
+                f"{limits[j]:.3g} A"
+            )
+    size = np.maximum(COM_SIZE * gyration_radii(robot.nominal_params()), COM_MIN)
+    for link, offset in params.com_offset.items():
+        i = robot.link_index(link)
+        length = float(np.linalg.norm(offset))
+        if length > size[i]:
+            out.append(
+                f"the COM offset of {link} is {length:.3g} m, more than {size[i]:.3g} m "
+                f"({COM_SIZE:g} radii of gyration of the link, at least {COM_MIN:g} m)"
+            )
+    return out
+
+
+def check_params(params: RobotParams, robot: Robot, source: str = "the params") -> RobotParams:
+    """``params`` checked against ``robot`` (``RobotParams.check``) and for plausibility
+    (``params_problems``); one InputError naming every problem and ``source``."""
+    problems = params_problems(params.check(robot), robot)
+    if problems:
+        raise InputError(
+            f"{source} are implausible for {robot.name}: {'; '.join(problems)} (a wrong robot, "
+            "a current in mA, or a failed calibration?)"
+        )
+    return params
+
+
+def recording_problems(recordings: Sequence[Recording]) -> list[str]:
+    """What makes ``recordings`` (of one robot, to be fitted together) implausible or
+    unusable, one sentence each; empty when nothing does."""
+    out = []
+    robot = recordings[0].robot()
+    names = arm_joint_names(robot)
+    limits = current_limits(robot)
+    _, stated = stated_scale(robot)
+    counts = np.zeros((len(names), 2), int)
+    for k, rec in enumerate(recordings):
+        label = f"recording {k + 1}: " if len(recordings) > 1 else ""
+        peak = np.max(np.abs(rec.current), axis=0, initial=0.0)
+        over = np.flatnonzero(stated & (peak > CURRENT_FACTOR * limits))
+        if over.size:
+            worst = ", ".join(
+                f"{names[j]} {peak[j]:.4g} A ({peak[j] / limits[j]:.3g}x)" for j in over
+            )
+            out.append(
+                f"{label}the current exceeds {CURRENT_FACTOR:g} times the current limit: "
+                f"{worst} (a current in mA? jaxcomp wants A)"
+            )
+        for j in range(len(names)):
+            own = rec.joint == j
+            if not own.any():
+                continue
+            rms = float(np.sqrt(np.mean(rec.current[own, j] ** 2)))
+            if rms < ZERO_CURRENT * limits[j]:
+                out.append(
+                    f"{label}the current of {names[j]} is zero over its sweeps (RMS {rms:.3g} A): "
+                    "was the current recorded?"
+                )
+            counts[j] += [(own & (rec.direction > 0)).sum(), (own & (rec.direction < 0)).sum()]
+    for j in np.flatnonzero(counts.min(axis=1) < MIN_SAMPLES):
+        what = "never swept" if counts[j].max() < MIN_SAMPLES else "swept in one direction only"
+        out.append(
+            f"{names[j]} is {what} (samples up/down: {counts[j, 0]}/{counts[j, 1]}), so its "
+            "friction cannot be told from its gravity torque: record it both ways, or calibrate "
+            "only the joints recorded (--joints)"
+        )
+    return out
+
+
+def check_recordings(recordings: Sequence[Recording]) -> None:
+    """One InputError naming every problem of ``recordings`` (``recording_problems``)."""
+    problems = recording_problems(recordings)
+    if problems:
+        raise InputError("the recordings cannot be fitted: " + "; ".join(problems))
