@@ -153,7 +153,8 @@ def test_a_current_that_lags_the_pose_is_paired_with_the_pose_it_flowed_at(robot
     the gravity torque's slope times the speed times the lag reads as friction (biased by
     several standard errors at low noise); with the recording's ``current_lag`` the fit pairs
     each current with its pose."""
-    rec = synthetic.recording(robot, truth, sweeps, noise=0.005, seed=13, lag=3e-3)
+    fast = [(j, hold, lo, hi, 3 * v) for j, hold, lo, hi, v in sweeps]  # 120 deg/s: short
+    rec = synthetic.recording(robot, truth, fast, noise=0.005, seed=13, lag=3e-3)
     assert rec.current_lag == 3e-3
     paired = jax_fit.fit(rec)
     unpaired = jax_fit.fit(dataclasses.replace(rec, current_lag=0.0))
