@@ -235,6 +235,10 @@ class Arm(abc.ABC):
     #: Consecutive cycles whose state may repeat the previous one without being stale
     #: feedback (a backend that tolerates lost replies returns the last state for them).
     stale_tolerance = 0
+    #: s: how long before the reported pose the reported current flowed (a recording's
+    #: ``current_lag``). 0: measured together (the real arm, whose actuators servo far
+    #: faster than 1 kHz, is taken to report them so).
+    current_lag = 0.0
 
     def __init__(self, joint_names: Sequence[str], limits: ArmLimits, poses: dict | None = None):
         self.joint_names = tuple(joint_names)

@@ -620,6 +620,10 @@ class Simulator:
 class SimArm(Arm):
     """The ``Arm`` interface on a ``Simulator`` (lock step: each cycle is one 1 ms step)."""
 
+    #: The current reported with a state is the one the servo computed at the state before,
+    #: one 1 ms step earlier, and drove through that step.
+    current_lag = CONTROL_PERIOD
+
     def __init__(self, sim: Simulator, limits: ArmLimits | None = None):
         robot = sim.robot
         poses = {k: v[sim._qadr] for k, v in robot.named_poses.items()}

@@ -106,17 +106,18 @@ def sweep_moments_batch(
     gravity: Sequence[float] = STANDARD_GRAVITY,
     fraction: float = STEADY_FRACTION,
     trim: float = STEADY_TRIM,
+    current_lag: float = 0.0,
 ) -> SweepMoments:
     """``sweep_moments`` of W recordings that share their time base and sweep labels.
 
     ``t`` (T,) s, ``joint`` (T,) and ``direction`` (T,) are common to every world (one plan
     recorded in W simulated worlds); ``q`` (W, T, n) rad, ``dq`` (W, T, n) rad/s and
-    ``current`` (W, T, n) A are each world's. Returns a ``SweepMoments`` whose every field has
-    a leading world axis: joint (W, S), hold (W, S, n), moments (W, S, D, D), count (W, S),
-    gravity (W, 3), payload_mass (W,), payload_com (W, 3), with one entry per sweep of the
-    labels; a sweep without steady samples in a world has zero moments, hold and count there
-    (it adds nothing to a fit). ``world_moments(batch, w)`` is world w's ``sweep_moments``, to
-    rounding (sums in another order).
+    ``current`` (W, T, n) A are each world's; ``current_lag`` s as a recording's. Returns a
+    ``SweepMoments`` whose every field has a leading world axis: joint (W, S), hold (W, S, n),
+    moments (W, S, D, D), count (W, S), gravity (W, 3), payload_mass (W,), payload_com (W, 3),
+    with one entry per sweep of the labels; a sweep without steady samples in a world has zero
+    moments, hold and count there (it adds nothing to a fit). ``world_moments(batch, w)`` is
+    world w's ``sweep_moments``, to rounding (sums in another order).
     """
     t = np.asarray(t, float)
     joint = np.asarray(joint)
@@ -131,7 +132,7 @@ def sweep_moments_batch(
     S = lay.joint.size
     S_pad, N, L = lay.sizes()
     samples = np.zeros((w, _ROWS + n, N))
-    _fill(lay, t, q, dq, current, samples)
+    _fill(lay, t, current_pose(q, dq, current_lag), dq, current, samples)
     meta = {k: np.broadcast_to(v, (w, *v.shape[1:])) for k, v in _meta([lay], S_pad).items()}
     packed = Packed(
         samples=samples,
@@ -306,6 +307,12 @@ def _meta(lays: Sequence[Layout], S: int) -> dict[str, np.ndarray]:
     return out
 
 
+def current_pose(q: np.ndarray, dq: np.ndarray, lag: float) -> np.ndarray:
+    """The pose at which each sample's current flowed, rad: ``q - lag dq`` (``lag`` s, a
+    recording's ``current_lag``); ``q`` itself when ``lag`` is 0."""
+    return q - lag * dq if lag else q
+
+
 def _fill(lay: Layout, t, q, dq, current, samples: np.ndarray) -> None:
     """Copy the passes of ``lay`` into ``samples`` (..., 3 + n, N), in packed order; ``q``,
     ``dq``, ``current`` (..., T, n) and ``t`` (T,) of one recording or of worlds that share the
@@ -336,7 +343,14 @@ def pack(recs: Sequence[Recording], buffer: PackBuffer | None = None) -> tuple[P
     S, N, L = (max(dims) for dims in zip(*(lay.sizes() for lay in lays), strict=True))
     samples = (buffer or PackBuffer()).take(len(recs), _ROWS + n, N)
     for i, (rec, lay) in enumerate(zip(recs, lays, strict=True)):
-        _fill(lay, rec.t, rec.q, rec.dq, rec.current, samples[i])
+        _fill(
+            lay,
+            rec.t,
+            current_pose(rec.q, rec.dq, rec.current_lag),
+            rec.dq,
+            rec.current,
+            samples[i],
+        )
     packed = Packed(
         samples=samples,
         **_meta(lays, S),

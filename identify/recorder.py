@@ -191,6 +191,7 @@ def record(
         gravity=gravity,
         payload_mass=payload_mass,
         payload_com=payload_com,
+        current_lag=getattr(arm, "current_lag", 0.0),
         joints=joints,
         resume=resume,
     )

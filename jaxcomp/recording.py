@@ -9,7 +9,10 @@ One ``.npz``, SI units, n = the robot's current-controlled joints:
 - optional ``joints`` (n,) str, the current-controlled joints' names (``load_robot(model,
   joints=...)``; without it, the model's default joints);
 - optional ``gravity`` (3,) m/s^2 in the base frame (default (0, 0, -9.81));
-- optional ``payload_mass`` kg and ``payload_com`` (3,) m in the end-effector frame.
+- optional ``payload_mass`` kg and ``payload_com`` (3,) m in the end-effector frame;
+- optional ``current_lag`` s (default 0): the current of a sample flowed at the pose of
+  ``current_lag`` earlier (q - current_lag dq); the simulators record the current their servo
+  computed one 1 kHz cycle before the pose they report, 1 ms.
 
 Any further array whose first axis has length N (the controller adds ``target``, ``ee``,
 ``base``, ``command``) is kept in ``Recording.extra``. Loading validates everything and raises
@@ -42,7 +45,9 @@ from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import arm_joint_indices, write_json_atomic
 
 _ARRAYS = ("t", "q", "dq", "current", "joint", "direction")
-_OPTIONAL = ("gravity", "payload_mass", "payload_com", "joints")
+_OPTIONAL = ("gravity", "payload_mass", "payload_com", "joints", "current_lag")
+#: s: the largest ``current_lag`` accepted.
+MAX_CURRENT_LAG = 0.1
 #: |q| beyond this (rad) cannot be an angle in radians of a revolute arm joint.
 _MAX_ANGLE = 2 * np.pi + 0.5
 
@@ -63,6 +68,7 @@ class Recording:
     payload_com: np.ndarray = field(default_factory=lambda: np.zeros(3))
     extra: dict[str, np.ndarray] = field(default_factory=dict)
     joints: tuple[str, ...] | None = None
+    current_lag: float = 0.0
 
     @property
     def n_samples(self) -> int:
@@ -84,6 +90,7 @@ class Recording:
             gravity=self.gravity,
             payload_mass=np.array(self.payload_mass),
             payload_com=self.payload_com,
+            current_lag=np.array(self.current_lag),
         )
         if self.joints is not None:
             out["joints"] = np.array(self.joints)
@@ -106,6 +113,7 @@ class Recording:
             payload_com=self.payload_com,
             extra=extra,
             joints=self.joints,
+            current_lag=self.current_lag,
         )
 
 
@@ -255,6 +263,11 @@ def _validate(data: Mapping[str, Any], require_sweep: bool) -> Recording:
             f"recording field 'payload_com' is {payload_com.tolist()} m; beyond 2 m from the "
             "end effector (millimetres?)"
         )
+    lag = float(_numeric(data, "current_lag", ())) if "current_lag" in data else 0.0
+    if not 0.0 <= lag <= MAX_CURRENT_LAG:
+        raise InputError(
+            f"recording field 'current_lag' must be within 0-{MAX_CURRENT_LAG:g} s, got {lag:g}"
+        )
     extra = {}
     for key in data:
         if key in _ARRAYS or key in _OPTIONAL or key == "model":
@@ -281,6 +294,7 @@ def _validate(data: Mapping[str, Any], require_sweep: bool) -> Recording:
         payload_com=payload_com,
         extra=extra,
         joints=joints,
+        current_lag=lag,
     )
 
 
@@ -320,7 +334,7 @@ class RecordingWriter:
         path: the final ``.npz``.
         model: ``model`` field; n: current-controlled joints.
         joints: ``joints`` field, their names (None: not written).
-        gravity, payload_mass, payload_com: optional metadata (format units).
+        gravity, payload_mass, payload_com, current_lag: optional metadata (format units).
         extra: {name: per-sample shape} of additional arrays (e.g. ``{"ee": (3,)}``).
         flush_every: samples per part file (1000 = one second at 1 kHz).
         resume: keep the completed segments of an earlier, interrupted writer of ``path``;
@@ -337,6 +351,7 @@ class RecordingWriter:
         gravity=None,
         payload_mass: float | None = None,
         payload_com=None,
+        current_lag: float | None = None,
         extra: Mapping[str, tuple] | None = None,
         joints: tuple[str, ...] | None = None,
         flush_every: int = 1000,
@@ -354,6 +369,8 @@ class RecordingWriter:
             self.meta["payload_com"] = np.asarray(payload_com, float).tolist()
         if joints is not None:
             self.meta["joints"] = [str(x) for x in joints]
+        if current_lag:
+            self.meta["current_lag"] = float(current_lag)
         self.meta["extra"] = {k: list(v) for k, v in (extra or {}).items()}
         self.meta["require_sweep"] = bool(require_sweep)
         self.flush_every = int(flush_every)

@@ -40,12 +40,14 @@ def recording(
     viscous=None,
     compliance: float = 0.0,
     scale: float = 1.0,
+    lag: float = 0.0,
 ) -> Recording:
     """A recording of ``sweeps`` [(joint, hold, lower, upper, speed)] for ``truth``.
 
     ``compliance`` rad/(N m): held joints give way to their gravity torque as a stiff servo
     does (q = hold - compliance g(q)), the swept joint follows its path. ``scale``: the
-    current's unit in A (1e-3: mA)."""
+    current's unit in A (1e-3: mA). ``lag`` s: the current flowed at the pose ``lag``
+    earlier, q - lag dq (the recording says so in ``current_lag``, as the simulators')."""
     parts = [sweep(*s) for s in sweeps]
     q = np.concatenate([p[0] for p in parts])
     dq = np.concatenate([p[1] for p in parts])
@@ -61,7 +63,7 @@ def recording(
         target = q.copy()
         for _ in range(3):  # fixed point of q = hold - compliance g(q)
             q = np.where(held, target - compliance * np.asarray(g(q)), target)
-    current = truth.ratio * np.asarray(g(q))
+    current = truth.ratio * np.asarray(g(q - lag * dq))
     rows = np.arange(len(d))
     current[rows, joint] += truth.friction[joint] * d
     if viscous is not None:
@@ -79,6 +81,7 @@ def recording(
             gravity=np.asarray(gravity, float),
             payload_mass=payload_mass,
             payload_com=np.asarray(payload_com, float),
+            current_lag=lag,
         )
     )
 

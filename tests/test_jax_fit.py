@@ -1,6 +1,7 @@
 """The joint JAX fit: accuracy against the truth and the scipy baseline, standard errors,
 identifiability handling, several recordings, failure modes."""
 
+import dataclasses
 import hashlib
 import json
 
@@ -152,6 +153,22 @@ def test_held_joints_that_give_way_under_load_do_not_bias_the_fit(robot, truth, 
     assert np.all(err[1:5] < 2e-3), err
     z = (fitted.ratio - truth.ratio) / fitted.std["ratio"]
     assert np.all(np.abs(z[1:5]) < 3), z
+
+
+def test_a_current_that_lags_the_pose_is_paired_with_the_pose_it_flowed_at(robot, truth, sweeps):
+    """The simulators report with each pose the current their servo drove through the 1 ms
+    before it (a servo bus may add more: 3 ms here). Fitted as if taken at the reported pose,
+    the gravity torque's slope times the speed times the lag reads as friction (biased by
+    several standard errors at low noise); with the recording's ``current_lag`` the fit pairs
+    each current with its pose."""
+    fast = [(j, hold, lo, hi, 3 * v) for j, hold, lo, hi, v in sweeps]  # 120 deg/s: short
+    rec = synthetic.recording(robot, truth, fast, noise=0.005, seed=13, lag=3e-3)
+    assert rec.current_lag == 3e-3
+    paired = jax_fit.fit(rec)
+    unpaired = jax_fit.fit(dataclasses.replace(rec, current_lag=0.0))
+    z = lambda p: (p.friction - truth.friction) / p.std["friction"]  # noqa: E731
+    assert np.abs(z(unpaired)).max() > 5, z(unpaired)
+    assert np.abs(z(paired)).max() < 3.5, z(paired)
 
 
 def test_standard_errors_and_identifiability_are_reported(synthetic_fit, tmp_path):

@@ -236,6 +236,7 @@ def test_record_fields_and_units(tmp_path):
     start = sim.arm.read()
     rec = record(sim.arm, plan, tmp_path / "rec.npz", model="gen3_lite", progress=True)
     assert rec.model == "gen3_lite" and rec.n_joints == 6
+    assert rec.current_lag == sim.arm.current_lag == 1e-3  # the servo's current of the step before
     assert rec.n_samples == plan.samples(start.q)
     np.testing.assert_allclose(np.diff(rec.t), 1e-3, atol=1e-9)
     assert rec.t[0] == pytest.approx(start.t + 1e-3)

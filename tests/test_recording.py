@@ -202,6 +202,9 @@ def test_tilted_gravity_is_kept():
         ("payload_com", [0.0, 0.0, 50.0], "millimetres"),
         ("payload_com", [0.0, 0.05], "shape"),
         ("payload_com", [0.0, np.inf, 0.0], "NaN"),
+        ("current_lag", -0.001, "within 0-0.1 s"),
+        ("current_lag", 1.0, "within 0-0.1 s, got 1"),
+        ("current_lag", [0.001, 0.0], "shape"),
     ],
 )
 def test_bad_payload(field, value, words):
@@ -250,11 +253,13 @@ def test_save_load_round_trip(tmp_path):
     data["gravity"] = np.array([0.0, 0.0, -9.80])
     data["payload_mass"] = np.array(0.2)
     data["payload_com"] = np.array([0.0, 0.0, 0.04])
+    data["current_lag"] = np.array(0.002)
     data["ee"] = np.arange(len(data["t"]) * 3.0).reshape(-1, 3)
     rec = validate(data)
     path = rec.save(tmp_path / "sub" / "rec.npz")
     back = load_recording(path)
     _same(rec, back)
+    assert back.current_lag == 0.002 and rec.select(rec.joint >= 0).current_lag == 0.002
     assert back.extra.keys() == {"ee"} and back.model == "gen3_lite"
     assert [p.name for p in path.parent.iterdir()] == ["rec.npz"]  # no temp files left
 

@@ -63,6 +63,10 @@ class MjxSimulator:
     chunking may be changed between runs (they are part of the compiled functions' keys).
     """
 
+    #: s, as ``SimArm.current_lag``: the current recorded with a state was computed at the
+    #: state one step before.
+    current_lag = CONTROL_PERIOD
+
     def __init__(
         self,
         robot: str | Path | Robot = "gen3_lite",

@@ -52,9 +52,12 @@ class SweepStream:
         seed: int,
         keep: int,
         segment: int | None = None,
+        current_lag: float = 0.0,
     ):
         """``segment``: the plan segment k these worlds run (``plan_signal.Segments``); their
-        noise then comes from ``SeedSequence([seed, NOISE_STREAM, world, k])``."""
+        noise then comes from ``SeedSequence([seed, NOISE_STREAM, world, k])``.
+        ``current_lag``: s, the simulator's (``MjxSimulator.current_lag``)."""
+        self.current_lag = float(current_lag)
         rec = np.arange(0, len(signal.joint), every)  # plan steps recorded
         self.t = (rec + 1) * CONTROL_PERIOD  # sample i is the state after plan step i
         self.joint, self.direction = signal.joint[rec], signal.direction[rec]
@@ -96,6 +99,7 @@ class SweepStream:
                     cur[:, seg],
                     self.joint[a:b],
                     self.direction[a:b],
+                    current_lag=self.current_lag,
                 )
             )
             rest = slice(b - self.start, None)
@@ -113,7 +117,16 @@ class SweepStream:
             return []
         q, dq, cur = self.kept_arrays()
         return [
-            Recording(self.t, q[i], dq[i], cur[i], self.joint, self.direction, model)
+            Recording(
+                self.t,
+                q[i],
+                dq[i],
+                cur[i],
+                self.joint,
+                self.direction,
+                model,
+                current_lag=self.current_lag,
+            )
             for i in range(self.keep)
         ]
 
@@ -179,7 +192,9 @@ def simulate(
     for first in range(0, n_worlds, world_batch):
         rows = slice(first, min(first + world_batch, n_worlds))
         noise = truth.current_noise[rows]
-        stream = SweepStream(signal, every, offset + first, noise, seed, keep)
+        stream = SweepStream(
+            signal, every, offset + first, noise, seed, keep, current_lag=sim.current_lag
+        )
         done = [0]
         width = rows.stop - rows.start
 
@@ -247,7 +262,16 @@ def _simulate_parallel(
         rows = np.arange(first, min(first + world_batch, n_worlds))
         width = len(rows)
         streams = [
-            SweepStream(seg.signals[k], every, offset + first, noise[rows], seed, keep, segment=k)
+            SweepStream(
+                seg.signals[k],
+                every,
+                offset + first,
+                noise[rows],
+                seed,
+                keep,
+                segment=k,
+                current_lag=sim.current_lag,
+            )
             for k in range(n_seg)
         ]
         done = [0]
@@ -304,6 +328,7 @@ def _simulate_parallel(
                     signal.joint[rec_steps],
                     signal.direction[rec_steps],
                     sim.robot.name,
+                    current_lag=sim.current_lag,
                 )
                 for i in range(streams[0].keep)
             ]
