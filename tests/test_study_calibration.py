@@ -199,6 +199,7 @@ def test_unwritable_out_dir_is_refused(tmp_path):
 # ----------------------------------------------------------------------------- one study
 def test_report_files_are_complete_and_valid(study):
     report, arrays, output, out = study
+    assert report["fit_com_prior"] == pytest.approx(0.004 / np.sqrt(3))  # the truths' spread
     assert sorted(p.name for p in out.iterdir()) == sorted(
         [*sc.FIGURES, "study.json", "worlds.npz"]
     )

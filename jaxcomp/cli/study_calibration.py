@@ -83,7 +83,8 @@ from jaxcomp.cli.study import study
     type=click.FloatRange(min=0.0, min_open=True),
     default=None,
     help="The JAX fit's prior standard deviation of every link's COM offset per axis, m "
-    "(default: as jaxcomp fit: the model's, else 10 %% of each link's radius of gyration).",
+    "(default: the spread the truths are drawn from, --com-offset / sqrt(3); jaxcomp fit's "
+    "default is the model's, 10 %% of each link's radius of gyration).",
 )
 @click.option(
     "--poses", type=int, default=1000, show_default=True, help="Poses of the gravity error."

@@ -114,6 +114,8 @@ STUDY_FILE = "study.json"
 WORLDS_FILE = "worlds.npz"
 FIGURES = ("errors.png", "coverage.png")
 FORMAT = "jaxcomp-study-calibration"
+#: m: the least COM prior of a study (its truths may have no COM offset at all).
+MIN_COM_PRIOR = 1e-4
 
 
 # ----------------------------------------------------------------------------- the study
@@ -137,7 +139,9 @@ class CalibrationSettings:
         parallel: the plan's sweeps side by side (``simulate``; None: on an accelerator,
             where a few thousand worlds leave it idle; on the CPU, where steps cost in
             proportion to the worlds, the sweeps run in turn).
-        com_prior: m, the JAX fit's COM prior on every link (None: ``fit_model``'s default).
+        com_prior: m, the JAX fit's COM prior on every link (None: the spread the truths are
+            drawn from, ``study_com_prior``: the fit is told the population it is tested on;
+            ``jaxcomp fit`` has the model's default, ``fit_model``).
     """
 
     worlds: int
@@ -172,6 +176,12 @@ class CalibrationSettings:
             raise InputError(
                 f"--plan {self.plan} needs at least as many --worlds ({self.worlds}) as plans"
             )
+
+
+def study_com_prior(spread: TruthSpread) -> float:
+    """m: the standard deviation per axis of the true COM offsets, U(-c, c): c / sqrt(3) (at
+    least ``MIN_COM_PRIOR``)."""
+    return max(float(spread.com_offset) / math.sqrt(3.0), MIN_COM_PRIOR)
 
 
 def world_groups(worlds: int, count: int) -> list[range]:
@@ -251,7 +261,7 @@ def run_study(
         groups.append(_Group(rows, the_plan, plan_signal(the_plan, start_pose(robot))))
         check_every(groups[-1].signal, every)
     sim = simulator(settings.devices, robot)
-    model = fit_model(robot, settings.com_prior)
+    model = fit_model(robot, settings.com_prior or study_com_prior(spread))  # m, every link
     truth = draw_truth(robot, worlds, seed, spread)
     backend, mesh = jax.default_backend(), sim.mesh
     world_batch = world_batch or (worlds if backend != "cpu" else mesh.size)
@@ -342,6 +352,7 @@ def run_study(
         "record_every": every,
         "record_rate_hz": 1.0 / (CONTROL_PERIOD * every),
         "truth": dataclasses.asdict(spread) | {"noise": float(truth.current_noise[0])},
+        "fit_com_prior": settings.com_prior or study_com_prior(spread),
         "backend": backend,
         "devices": [str(d) for d in mesh.devices.flat],
         "world_batch": world_batch,
