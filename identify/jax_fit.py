@@ -878,8 +878,9 @@ def _join(parts: list[tuple[Packed, int]], size: int) -> tuple[Packed, int]:
         return jnp.pad(a, [(0, 0)] + [(0, s - d) for s, d in zip(shape, a.shape[1:], strict=True)])
 
     def join(*a):
-        a = jnp.concatenate(a)
-        return jnp.concatenate([a, jnp.repeat(a[-1:], size - a.shape[0], axis=0)])
+        a = a[0] if len(a) == 1 else jnp.concatenate(a)
+        fill = size - a.shape[0]  # no copy of a full batch in one group (the CPU's case)
+        return a if fill == 0 else jnp.concatenate([a, jnp.repeat(a[-1:], fill, axis=0)])
 
     padded = [jax.tree.map(fit, p, shapes) for p in leaves]
     return jax.tree.map(join, *padded), length

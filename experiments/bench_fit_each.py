@@ -1,0 +1,79 @@
+"""`jaxcomp fit --each` end to end: the joint JAX fit against the paper's scipy fit on a batch of
+recordings, as a user runs it (a fresh process each, start-up and file reading included).
+
+``--count`` recordings of the Gen3 Lite's default plan (synthetic, 1 kHz, ~233 000 samples
+each, fresh 0.05 A noise per recording) are written to a temp folder; then, side by side:
+`jaxcomp fit --each` with the JAX fit with an empty XLA cache (cold) and again with the cache
+it left (warm), and `jaxcomp fit --each --method scipy`. Printed: wall seconds of each command.
+
+    python experiments/bench_fit_each.py [--count 32]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+import numpy as np  # noqa: E402
+import synthetic  # noqa: E402  (the tests' synthetic recordings)
+
+from jaxcomp.identify.plan_design import default_plan  # noqa: E402
+from jaxcomp.robot import load_robot  # noqa: E402
+from jaxcomp.robot_params import RobotParams  # noqa: E402
+
+
+def _run(args: list[str], env: dict) -> float:
+    t0 = time.perf_counter()
+    done = subprocess.run(args, env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(args[:4])} ...: {done.stderr.strip().splitlines()[-1]}")
+    return time.perf_counter() - t0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--count", type=int, default=32)
+    args = parser.parse_args()
+    robot = load_robot("gen3_lite")
+    nominal = RobotParams.nominal(robot)
+    rng = np.random.default_rng(0)
+    truth = RobotParams(
+        robot.name,
+        nominal.ratio * rng.uniform(0.8, 1.2, 6),
+        rng.uniform(0.3, 1.0, 6),
+        {k: rng.uniform(-0.004, 0.004, 3) for k in ("ARM", "FOREARM", "LOWER_WRIST")},
+    )
+    sweeps = synthetic.plan_sweeps(default_plan(robot))
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        files = []
+        for k in range(args.count):
+            rec = synthetic.recording(robot, truth, sweeps, noise=0.05, seed=k)
+            files.append(str(rec.save(folder / f"rec{k:03d}.npz")))
+        samples = rec.n_samples
+        env = os.environ | {"JAXCOMP_CACHE": str(folder / "xla")}
+        jaxcomp = [sys.executable, "-m", "jaxcomp.cli"]
+        if subprocess.run([*jaxcomp, "--help"], capture_output=True).returncode != 0:
+            jaxcomp = [sys.executable, "-c", "from jaxcomp.cli import main; main()"]
+        out = str(folder / "each.json")
+        times = {
+            "jax, cold cache": _run([*jaxcomp, "fit", *files, "--each", "--out", out], env),
+            "jax, warm cache": _run([*jaxcomp, "fit", *files, "--each", "--out", out], env),
+            "scipy": _run(
+                [*jaxcomp, "fit", *files, "--each", "--method", "scipy", "--out", out], env
+            ),
+        }
+    print(f"{args.count} recordings of {samples} samples, `jaxcomp fit --each`, end to end:")
+    for name, seconds in times.items():
+        print(f"  {name:<16}{seconds:>7.2f} s")
+
+
+if __name__ == "__main__":
+    main()
