@@ -2,12 +2,13 @@
 each excited joint's ratio over noise repetitions against its Cramer-Rao bound.
 
 Per arm: a true robot (ratios 0.7-1.3 x the model's scale, COM offsets U(-4, 4) mm per axis)
-records the default plan twice, once plain and once carrying a known payload (0.5 kg on the
-Gen3 Lite and the Gen3, 0.15 kg on the WidowX, at (5, 0, 5) cm in the end-effector frame, off
-the last joint's axis); synthetic recordings at 1 kHz with fresh current noise (the model's) in
-every repetition. Printed per arm and excited joint: the ratio error RMS over the repetitions, the RMS of the standard error
-the fit reports (the Cramer-Rao bound at the estimate), their quotient, and how often the
-ratio is reported identified, for the plain recording alone and for the pair.
+records the default plan twice, once plain and once carrying a known payload (0.5 kg on the Gen3
+Lite and the Gen3, 0.15 kg on the WidowX, at (5, 0, 5) cm in the end-effector frame, off the
+last joint's axis); synthetic recordings at 1 kHz with fresh current noise (the model's) in
+every repetition. Printed per arm and excited joint: the ratio error RMS over the repetitions,
+the RMS of the standard error the fit reports (the Cramer-Rao bound at the estimate), their
+quotient, and how often the ratio is reported identified, for the plain recording alone and for
+the pair.
 
     python experiments/payload_cure.py [--arms gen3_lite wx250s gen3] [--reps 12]
 """
