@@ -69,6 +69,7 @@ from tqdm.auto import tqdm
 
 from jaxcomp import current, dynamics
 from jaxcomp.errors import InputError, JaxcompError
+from jaxcomp.identify import traced
 from jaxcomp.identify.bins import STEADY_FRACTION, STEADY_TRIM
 from jaxcomp.identify.moments import (
     PackBuffer,
@@ -952,7 +953,13 @@ def fit_each(
             start = time.perf_counter()
             groups = [chunk[i : i + group] for i in range(0, len(chunk), group)]
             packed, length = _join(list(pool.map(send, groups)), batch)
-            result = _fit_packed(model, packed, length, not accelerated)  # async: runs on
+            result = traced.call(  # async: the device runs it while the host finishes the last
+                "fit_packed",
+                repr((model._identity, length, not accelerated)),
+                partial(_fit_packed, model, length=length, sequential=not accelerated),
+                (packed,),
+                (Packed, Solution),
+            )
             if pending is not None:
                 finish(*pending)
             pending = (chunk, result, start)

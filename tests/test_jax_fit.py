@@ -307,7 +307,7 @@ def test_simulator_recording_accuracy_against_truth_and_baseline(robot, sim_cali
 def test_spread_over_repetitions_matches_reported_standard_errors(sim_calibration):
     """Noise-only repetitions: the spread of the estimates is within 1.2x the reported std."""
     clean, _ = sim_calibration
-    reps = 200
+    reps = 120
     fits = jax_fit.fit_each(synthetic.with_noise(clean, 0.05, seed=100 + k) for k in range(reps))
     for field in ("ratio", "friction", "phase_shift"):
         values = np.array([getattr(f, field) for f in fits])
