@@ -8,6 +8,7 @@
 - ``bins``: the steady samples of a sweep and their angle-bin means;
 - ``moments``: sweep moments, a recording reduced exactly for the joint fit;
 - ``jax_fit``: the joint JAX fit; ``baseline``: the paper's fit (scipy, pinocchio);
+- ``traced``: traced programs kept on disk between processes (``jax.export``);
 - ``evaluate``: errors of fitted params against a known truth; ``plots``: calibration plots.
 
 Identification reads recordings and writes a params file (``jaxcomp.robot_params``), the only
