@@ -37,8 +37,9 @@ CPU allows) and sends it.
 Before anything is switched, the targets are checked against the arm's reach
 (``workspace.arm_reach``: guidance mode, or tracking without a base, whose targets the arm alone
 must reach); during the run the watchdog also ends a run whose end effector stays more than
-``max_error`` m (default twice the controller's error clip: 0.2 m on the Gen3 Lite) from its
-target for more than ``max_error_time`` s (default 2 s) with ``not_tracking``.
+``max_error`` m (default in tracking mode twice the controller's error clip: 0.2 m on the Gen3
+Lite; in guidance mode none, where a person may hold the arm off its target) from its target for
+more than ``max_error_time`` s (default 2 s) with ``not_tracking``.
 
 Any watchdog trip, hardware fault, Ctrl-C or exception ends the run with the arm in POSITION
 mode and the base stopped, before anything else is done (``safe_stop`` in a ``finally``).
@@ -592,8 +593,9 @@ def run_control(
             world m) after the command is computed and checked and before it is sent (for
             viewers and tests; keep it short: it runs inside the 1 ms budget).
         max_error: m, a run whose end effector stays further than this from its target for
-            more than ``max_error_time`` s ends with ``not_tracking``; None: twice the
-            controller's error clip; ``math.inf``: never (ignored with ``watchdog``).
+            more than ``max_error_time`` s ends with ``not_tracking``; None: in tracking mode
+            twice the controller's error clip, in guidance mode never; ``math.inf``: never
+            (ignored with ``watchdog``).
         before_start: called with the run's duration (s) once it is resolved, before anything
             is switched or written (e.g. to refuse events outside the run by raising
             ``InputError``).
@@ -665,6 +667,15 @@ class _End(NamedTuple):
     unexpected: BaseException | None
 
 
+def default_max_error(mode: Mode | str, controller) -> float:
+    """m: how far the end effector may stay from its target (``run_control``'s ``max_error``
+    when none is given): in tracking mode twice the controller's error clip; in guidance mode
+    no limit (inf), as a person may hold the arm off its target at will."""
+    if Mode(mode) is Mode.GUIDANCE:
+        return math.inf
+    return 2.0 * float(getattr(controller.gains, "error_clip", 0.1))
+
+
 def _set_up(
     arm: Arm,
     base: Base | None,
@@ -699,7 +710,7 @@ def _set_up(
     if not (math.isfinite(max_error_time) and max_error_time > 0):
         raise InputError(f"max_error_time must be a positive number of s, got {max_error_time}")
     if max_error is None:
-        max_error = 2.0 * float(getattr(controller.gains, "error_clip", 0.1))
+        max_error = default_max_error(mode, controller)
     wd = watchdog or Watchdog(
         arm.joint_names,
         law.limit,

@@ -34,7 +34,13 @@ from jaxcomp.control import (
     make_impedance_controller,
     make_velocity_controller,
 )
-from jaxcomp.control.loop import ArmMount, arm_model, arm_params, run_control
+from jaxcomp.control.loop import (
+    ArmMount,
+    arm_model,
+    arm_params,
+    default_max_error,
+    run_control,
+)
 from jaxcomp.control.timing import CycleTimer
 from jaxcomp.control.trajectory import Trajectory, parse_trajectory
 from jaxcomp.control.watchdog import Watchdog, WatchdogTrip
@@ -665,6 +671,14 @@ def test_a_run_that_does_not_track_ends_not_tracking(controller, tmp_path):
     assert "more than 5 mm from its target for 0.05 s" in result.reason
     assert result.cycles == 50 and result.max_error > 0.005  # 51 checks, the first at t = 0
     _assert_safe(sim)
+
+
+def test_guidance_has_no_default_tracking_limit(controller):
+    """A person may hold the arm off its target in guidance mode; tracking allows twice the
+    error clip (0.1 m on the Gen3 Lite's paper gains) by default."""
+    clip = controller.gains.error_clip
+    assert default_max_error("tracking", controller) == pytest.approx(2 * clip) == 0.2
+    assert default_max_error("guidance", controller) == math.inf
 
 
 def test_watchdog_counts_the_cycles_off_target():

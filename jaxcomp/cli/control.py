@@ -132,8 +132,9 @@ def _target_marker(sim):
     type=float,
     default=None,
     help="m: a run whose end effector stays further than this from its target for more than "
-    "--max-error-time s ends early (not_tracking, status 1); default: twice the gains' error "
-    "clip (0.2 m for the Gen3 Lite); inf: never.",
+    "--max-error-time s ends early (not_tracking, status 1); default: in tracking mode twice "
+    "the gains' error clip (0.2 m for the Gen3 Lite), in guidance mode never (a person may hold "
+    "the arm off its target); inf: never.",
 )
 @click.option(
     "--max-error-time",
