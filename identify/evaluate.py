@@ -150,13 +150,15 @@ def gravity_current_error_batch(
     batch: int = 256,
     *,
     pooled: bool = False,
+    joints: np.ndarray | None = None,
 ) -> np.ndarray:
     """``gravity_current_error`` of W params sets against W truths, batched on the default
     backend; (W, n) per world and joint, NaN where the true gravity current is ~0.
 
-    ``pooled``: instead (W,) one number per world, the gravity-current error pooled over all
+    ``pooled``: instead (W,) one number per world, the gravity-current error pooled over the
     joints: the RMS of the error over ``poses`` and joints together, relative to the RMS of the
-    true gravity current over both (no NaN).
+    true gravity current over both; ``joints`` (W, n) bool: pool over these joints of each world
+    only (default: all; NaN where they carry no gravity current).
 
     ``truth_ratio``, ``ratio``: (W, n) A/(N m); ``truth_com``, ``com``: (W, nb, 3) m, COM
     offsets of every link (``robot.link_names`` order, link frame) added to the nominal model;
@@ -179,7 +181,12 @@ def gravity_current_error_batch(
         k = min(b, w - s)
         err[s : s + k], true[s : s + k] = np.asarray(e)[:k], np.asarray(t)[:k]
     if pooled:
-        return np.sqrt(err.mean(axis=1)) / np.sqrt(true.mean(axis=1))
+        mask = np.ones((w, n), bool) if joints is None else np.asarray(joints, bool)
+        if mask.shape != (w, n):
+            raise InputError(f"joints must be (W, n) = {(w, n)} booleans, got {mask.shape}")
+        err_sum, true_sum = (err * mask).sum(axis=1), (true * mask).sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(true_sum > 0, np.sqrt(err_sum / true_sum), np.nan)
     rms, scale = np.sqrt(err), np.sqrt(true)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(scale > 1e-9, rms / scale, np.nan)

@@ -308,6 +308,25 @@ def test_batched_moments_and_fits_are_the_single_recording_ones(robot, tiny_plan
     assert swept.sum() == 4 and np.all((0.04 < sigma) & (sigma < 0.06)), sigma
 
 
+@pytest.mark.parametrize("seed", range(5))
+def test_the_scipy_sample_takes_the_first_worlds_of_every_plan(seed):
+    """M worlds of N in K plan groups: each group gives its first worlds, its share of M as
+    even as the groups are (one more for the first M % K), all of M when M <= N."""
+    rng = np.random.default_rng(seed)
+    worlds = int(rng.integers(1, 300))
+    count = int(rng.integers(1, worlds + 1))
+    groups = sc.world_groups(worlds, count)
+    for m in (0, 1, count, int(rng.integers(0, worlds + 1)), worlds, worlds + 5):
+        sample = sc.baseline_worlds(groups, m)
+        assert len(sample) == min(m, worlds) and len(set(sample)) == len(sample)
+        per = [int(np.count_nonzero((sample >= r.start) & (sample < r.stop))) for r in groups]
+        assert max(per) - min(per) <= 1 and per == sorted(per, reverse=True)
+        for r, k in zip(groups, per, strict=True):
+            np.testing.assert_array_equal(
+                sample[(sample >= r.start) & (sample < r.stop)], np.arange(r.start, r.start + k)
+            )
+
+
 def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch):
     """--plan random:2: world 0 records one random plan, world 1 another (quick ones here: short
     fast sweeps near the middle of the ranges; the study's take minutes on this CPU). The truths
@@ -321,7 +340,7 @@ def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch)
         move_speed=math.radians(90),
     )
     monkeypatch.setattr(named_plans, "random_plan", quick)
-    settings = sc.CalibrationSettings(2, SEED, plan="random:2", baseline_sample=1, poses=100)
+    settings = sc.CalibrationSettings(2, SEED, plan="random:2", baseline_sample=2, poses=100)
     report, arrays, paths = sc.study_into(tmp_path / "r", settings, progress=False, robot=robot)
     assert sorted(p.name for p in paths) == sorted([*sc.FIGURES, sc.WORLDS_FILE, sc.STUDY_FILE])
     json.loads((tmp_path / "r" / sc.STUDY_FILE).read_text(), parse_constant=pytest.fail)
@@ -350,18 +369,24 @@ def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch)
     for k, x in enumerate((truth, est)):
         com[k][:, model.link_ids] = x[:, 3 * n : 3 * n + model.K].reshape(2, -1, 3)
     poses = random_poses(robot, 100, seed=SEED)
+    # pooled over the joints each world's plan sweeps
+    swept = np.array([np.isin(np.arange(n), plan.joints) for plan in plans])
+    np.testing.assert_array_equal(arrays["swept"], swept)
     pooled = gravity_current_error_batch(
-        robot, truth[:, :n], com[0], est[:, :n], com[1], poses, pooled=True
+        robot, truth[:, :n], com[0], est[:, :n], com[1], poses, pooled=True, joints=swept
     )
     np.testing.assert_allclose(arrays["jax_gravity_current_error_pooled"], pooled, rtol=1e-9)
-    jp, sp = pooled[0], float(arrays["scipy_gravity_current_error_pooled"][0])
-    assert 0 < sp < 1
+    # the scipy sample has a world of each plan
+    np.testing.assert_array_equal(arrays["scipy_worlds"], [0, 1])
+    assert report["scipy"]["plans"] == 2 and report["scipy"]["failed"] == []
+    sp = arrays["scipy_gravity_current_error_pooled"]
+    assert np.all((0 < sp) & (sp < 1))
     cmp = report["jax"]["on_scipy_worlds"]["pooled_gravity_current_error"]
     assert cmp == {
-        "worlds": 1,
-        "jax_worse_fraction": float(jp > sp),
-        "jax_median": pytest.approx(jp),
-        "scipy_median": pytest.approx(sp),
+        "worlds": 2,
+        "jax_worse_fraction": float(np.mean(pooled > sp)),
+        "jax_median": pytest.approx(np.median(pooled)),
+        "scipy_median": pytest.approx(np.median(sp)),
     }
     ident = arrays["jax_identified"][:, :n]
     rel = np.abs(est[:, :n] / truth[:, :n] - 1)

@@ -30,7 +30,8 @@ from jaxcomp.cli.study import study
     type=int,
     default=16,
     show_default=True,
-    help="Also fit the first M worlds with the paper's scipy fit (0: none).",
+    help="Also fit M worlds with the paper's scipy fit (0: none): the first worlds of each "
+    "plan, M spread over the plans.",
 )
 @click.option(
     "--plan",
@@ -131,11 +132,11 @@ def calibration(
     Each world: a --model arm whose ratios and friction losses are off nominal by 20-30 % and
     whose links' COM are off by a few mm, with current noise. The calibration plan is recorded
     in all worlds at once on MJX (1 kHz, recorded at 1 kHz / --every), every world is fitted
-    with the joint JAX fit (batched on the accelerator) and the first M with the paper's scipy
-    fit. DIR/study.json: per-parameter errors against the truth, gravity-current error at
-    random poses (and how often the JAX fit's, pooled over the joints, is worse than the scipy
-    fit's), the largest error of an identified ratio, coverage of the reported standard
-    errors, Cramer-Rao comparison, run times;
+    with the joint JAX fit (batched on the accelerator) and M of them (spread over the plans)
+    with the paper's scipy fit. DIR/study.json: per-parameter errors against the truth,
+    gravity-current error at random poses (and how often the JAX fit's, pooled over the swept
+    joints, is worse than the scipy fit's), the largest error of an identified ratio, coverage of
+    the reported standard errors, Cramer-Rao comparison, run times;
     DIR/errors.png, DIR/coverage.png; DIR/worlds.npz: per-world truth and estimates. Nothing
     is written on error. The same --seed reproduces the numbers (timings aside).
     """

@@ -7,8 +7,9 @@ noise, optional viscous friction); the calibration plan (default:
 plans, ``identify.random_plans``, each recorded by a contiguous group of the worlds) is
 recorded in every world at once on MJX (``MjxSimulator``, 1 kHz, float64, worlds sharded over
 the accelerators), every world is fitted with the joint JAX fit in vmapped batches on the
-accelerator (``jax_fit.fit_batch``) and the first M worlds also with the paper's scipy fit
-(``identify.baseline``). The report compares estimates with the truth.
+accelerator (``jax_fit.fit_batch``) and M of them also with the paper's scipy fit
+(``identify.baseline``; the first worlds of each plan's group, M spread over the plans as the
+worlds are: ``baseline_worlds``). The report compares estimates with the truth.
 
 The stages, each in its own module and composed here (``run_study``): ``truth_draw``,
 ``plan_signal``, ``plan_recording`` (simulate and reduce), ``jax_fit.fit_batch`` and
@@ -130,7 +131,8 @@ class CalibrationSettings:
             JSON file.
         every: record every k-th 1 kHz state (10: 100 Hz) for the fits.
         spread: how the true robots differ from the nominal model (``TruthSpread``).
-        baseline_sample: also fit the first M worlds with the paper's scipy fit (0: none).
+        baseline_sample: also fit M worlds with the paper's scipy fit (0: none), the first
+            of each plan's group (``baseline_worlds``).
         devices: shard over the first K devices (None: all).
         world_batch: worlds per MJX run (None: all on an accelerator, one per device on the
             CPU, where MJX steps a batch of worlds slower than one world at a time).
@@ -190,6 +192,19 @@ def world_groups(worlds: int, count: int) -> list[range]:
     size, extra = divmod(worlds, count)
     edges = np.cumsum([0] + [size + (g < extra) for g in range(count)])
     return [range(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+
+
+def baseline_worlds(groups: list[range], sample: int) -> np.ndarray:
+    """The worlds of the scipy sample: ``sample`` of them (at most all), cut over the plans'
+    ``groups`` (``world_groups``) as ``world_groups`` cuts the worlds, the first ones of each
+    group, so that every plan is in the sample."""
+    shares = world_groups(min(sample, groups[-1].stop), len(groups))
+    return np.concatenate(
+        [
+            np.arange(rows.start, rows.start + len(share))
+            for rows, share in zip(groups, shares, strict=True)
+        ]
+    ).astype(np.int64)
 
 
 class _Group(NamedTuple):
@@ -266,7 +281,8 @@ def run_study(
     backend, mesh = jax.default_backend(), sim.mesh
     world_batch = world_batch or (worlds if backend != "cpu" else mesh.size)
     parallel = backend != "cpu" if parallel is None else bool(parallel)
-    keep = min(baseline_sample, worlds)
+    sample = baseline_worlds([gr.rows for gr in groups], baseline_sample)
+    keep = len(sample)
     timing = {"setup": time.perf_counter() - t_all}
 
     bar = tqdm(
@@ -278,6 +294,7 @@ def run_study(
     )
     for g, gr in enumerate(groups):
         rows = slice(gr.rows.start, gr.rows.stop)
+        sampled = np.count_nonzero((sample >= rows.start) & (sample < rows.stop))
         simulated = simulate(
             sim,
             truth_rows(truth, rows),
@@ -285,7 +302,7 @@ def run_study(
             seed=seed,
             every=every,
             world_batch=world_batch,
-            keep=keep,
+            keep=rows.start + int(sampled),  # global index: the group's first worlds
             progress=bar.update,
             parallel=parallel,
             offset=gr.rows.start,
@@ -331,15 +348,15 @@ def run_study(
     t0 = time.perf_counter()
     bar = tqdm(total=keep, unit="fit", desc="scipy fits", disable=not progress or not keep)
     scipy_est, failed = scipy_estimates(
-        robot, truth, recordings, jax_est, pose_set, progress=bar.update
+        robot, truth, sample, recordings, jax_est, pose_set, progress=bar.update
     )
+    on_m = jax_est.rows(sample)
     bar.close()
     timing["fit_scipy"] = time.perf_counter() - t0
 
     n = model.n
     jax_table = parameter_table(jax_est, 2 * n)
     scipy_table = parameter_table(scipy_est, 2 * n) if keep else {}
-    on_m = jax_est.rows(slice(0, keep))
     sigma = noise_estimate[jax_est.ok]
     timing["total"] = time.perf_counter() - t_all
     report = {
@@ -374,11 +391,14 @@ def run_study(
                     if k in scipy_table
                 },
                 "gravity_current_error": gravity_summary(on_m.gravity[on_m.ok]),
-                "pooled_gravity_current_error": gravity_comparison(jax_est, scipy_est),
+                "pooled_gravity_current_error": gravity_comparison(on_m, scipy_est),
             },
         },
         "scipy": {
             "worlds": keep,
+            "plans": len(
+                {int(np.searchsorted([gr.rows.stop for gr in groups], w, "right")) for w in sample}
+            ),
             "failed": failed,
             "parameters": scipy_table,
             "gravity_current_error": gravity_summary(scipy_est.gravity),
@@ -404,6 +424,8 @@ def run_study(
         "jax_noise_estimate": noise_estimate,
         "jax_gravity_current_error": jax_est.gravity,
         "jax_gravity_current_error_pooled": jax_est.gravity_pooled,
+        "swept": jax_est.swept,
+        "scipy_worlds": sample,
         "scipy_estimate": scipy_est.estimate,
         "scipy_std": scipy_est.std,
         "scipy_gravity_current_error": scipy_est.gravity,
@@ -489,7 +511,8 @@ def summary(report: dict) -> str:
     lines = [
         f"{report['worlds']} worlds, plan {plan['name']} ({length}), "
         f"{report['backend']} x{len(report['devices'])}; "
-        f"RMS relative errors (scipy on the first {report['scipy']['worlds']}), "
+        f"RMS relative errors (scipy on {report['scipy']['worlds']} of them, "
+        f"{report['scipy'].get('plans', 1)} plans), "
         "gravity current: median over worlds",
         head,
     ]
@@ -507,8 +530,8 @@ def summary(report: dict) -> str:
     pooled = report["jax"]["on_scipy_worlds"]["pooled_gravity_current_error"]
     if pooled["worlds"]:
         lines.append(
-            f"gravity current pooled over joints, {pooled['worlds']} worlds both fits have: JAX "
-            f"worse than scipy in {pct(pooled['jax_worse_fraction'])}; median JAX "
+            f"gravity current pooled over the swept joints, {pooled['worlds']} worlds both fits "
+            f"have: JAX worse than scipy in {pct(pooled['jax_worse_fraction'])}; median JAX "
             f"{pct(pooled['jax_median'])}, scipy {pct(pooled['scipy_median'])}"
         )
     worst = report["jax"]["largest_identified_ratio_error"]

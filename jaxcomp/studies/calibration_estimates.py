@@ -1,7 +1,7 @@
 """Both fits' estimates of the calibration study's worlds against their truth.
 
 The joint JAX fit (``identify.jax_fit.fit_batch``) of every world and the paper's scipy fit
-(``identify.baseline``) of the first M: per parameter the estimate, the truth and the standard
+(``identify.baseline``) of M of them: per parameter the estimate, the truth and the standard
 error the fit reported, and per joint the relative gravity-current error at random poses
 (``identify.evaluate.gravity_current_error_batch``). Units: ratio A/(N m), friction loss A,
 viscous A s/rad (= ratio x the truth's N m s/rad), COM offsets m (link frame), phase shifts rad.
@@ -28,7 +28,8 @@ class Estimates(NamedTuple):
     identified (W, P) bool: the data determine the parameter (``jax_fit.identified``); ok (W,)
     bool: the fit converged / did not fail; gravity (W, n): relative RMS gravity-current error
     per joint at random poses (``evaluate.gravity_current_error_batch``); gravity_pooled (W,):
-    the same pooled over the joints (``pooled=True``).
+    the same pooled over the joints the world's plan sweeps (``pooled=True``: no fit learns the
+    ratio of a joint it never moves); swept (W, n) bool: the joints the world's plan sweeps.
     """
 
     names: list[str]
@@ -40,6 +41,15 @@ class Estimates(NamedTuple):
     ok: np.ndarray
     gravity: np.ndarray
     gravity_pooled: np.ndarray
+    swept: np.ndarray
+
+    @property
+    def determined(self) -> np.ndarray:
+        """(W, P) bool: the parameters the data bear on, ``identified`` but for the ratios
+        (the first n), which are determined wherever their joint is swept, identified or
+        confounded with COM offsets (reported as such)."""
+        n = self.swept.shape[1]
+        return np.concatenate([self.swept, self.identified[:, n:]], axis=1)
 
     @property
     def error(self) -> np.ndarray:
@@ -102,6 +112,7 @@ def jax_estimates(
         phases.append((fit_phase[0], fit_phase[1], true_phase))
     phase, phase_std, true_phase = (np.array(x) for x in zip(*phases, strict=True))
     ident = identified(sol)
+    swept = (joint[:, :, None] == np.arange(n)).any(axis=1)  # (W, n)
     nb = len(robot.link_names)
     fit_com = np.zeros((w, nb, 3))
     fit_com[:, model.link_ids] = sol.com.reshape(w, -1, 3)
@@ -113,29 +124,32 @@ def jax_estimates(
         std=np.concatenate([fits.std, np.where(phase_std > 0, phase_std, np.nan)], axis=1),
         identified=np.concatenate([ident, ident[:, :n] & (phase_std > 0)], axis=1),
         ok=np.asarray(sol.converged, bool) & (simulated.fault_step < 0),
-        **_gravity_errors(robot, truth.ratio, truth.com_offset, sol.ratio, fit_com, poses),
+        **_gravity_errors(robot, swept, truth.ratio, truth.com_offset, sol.ratio, fit_com, poses),
+        swept=swept,
     )
 
 
-def _gravity_errors(robot: Robot, *args: np.ndarray) -> dict[str, np.ndarray]:
-    """``gravity`` and ``gravity_pooled`` of ``Estimates`` (the arguments of
-    ``gravity_current_error_batch``)."""
+def _gravity_errors(robot: Robot, swept: np.ndarray, *args: np.ndarray) -> dict[str, np.ndarray]:
+    """``gravity`` and ``gravity_pooled`` (over the ``swept`` joints) of ``Estimates`` (the
+    other arguments: those of ``gravity_current_error_batch``)."""
     return {
         "gravity": gravity_current_error_batch(robot, *args),
-        "gravity_pooled": gravity_current_error_batch(robot, *args, pooled=True),
+        "gravity_pooled": gravity_current_error_batch(robot, *args, pooled=True, joints=swept),
     }
 
 
 def scipy_estimates(
     robot: Robot,
     truth: BatchTruth,
+    worlds: np.ndarray,
     recordings: Sequence[Recording],
     jax: Estimates,
     poses: np.ndarray,
     progress: Callable[[], None] | None = None,
 ) -> tuple[Estimates, list[dict]]:
-    """The paper's scipy fit of the first M = len(recordings) worlds: ratio and friction as
-    ``Estimates`` (identified where the joint fit's are), and the fits that failed."""
+    """The paper's scipy fit of the M worlds ``worlds`` (indices into ``truth`` and ``jax``),
+    whose ``recordings`` these are: ratio and friction as ``Estimates`` (identified where the
+    joint fit's are), and the fits that failed (their world index and the error)."""
     if recordings:  # pinocchio, a heavy optional dependency: only when there is a fit to do
         from jaxcomp.identify.baseline import fit_baseline
     m, n, nb = len(recordings), truth.ratio.shape[1], len(robot.link_names)
@@ -146,7 +160,7 @@ def scipy_estimates(
         try:
             p = fit_baseline(rec, robot=robot, complete=False)  # random plans sweep a subset
         except (ValueError, np.linalg.LinAlgError) as exc:  # the paper's fit gives up
-            failed.append({"world": w, "error": str(exc)})
+            failed.append({"world": int(worlds[w]), "error": str(exc)})
         else:
             est[w] = np.r_[p.ratio, p.friction]
             std[w] = np.r_[_std(p, "ratio", n), _std(p, "friction", n)]
@@ -154,9 +168,11 @@ def scipy_estimates(
                 com[w, robot.link_index(link)] = off
         if progress is not None:
             progress()
-    ok = np.isfinite(est).all(axis=1) & jax.ok[:m]  # faulted worlds left out, as for JAX
+    ok = np.isfinite(est).all(axis=1) & jax.ok[worlds]  # faulted worlds left out, as for JAX
     ratio = np.where(ok[:, None], est[:, :n], 1.0)
-    gravity = _gravity_errors(robot, truth.ratio[:m], truth.com_offset[:m], ratio, com, poses)
+    true_ratio, true_com = truth.ratio[worlds], truth.com_offset[worlds]
+    swept = jax.swept[worlds]
+    gravity = _gravity_errors(robot, swept, true_ratio, true_com, ratio, com, poses)
     gravity["gravity"][~ok] = np.nan
     gravity["gravity_pooled"][~ok] = np.nan
     cut = slice(0, 2 * n)
@@ -165,11 +181,12 @@ def scipy_estimates(
             names=jax.names[cut],
             units=jax.units[cut],
             estimate=est,
-            truth=jax.truth[:m, cut],
+            truth=jax.truth[worlds, cut],
             std=std,
-            identified=jax.identified[:m, cut] & ok[:, None],
+            identified=jax.identified[worlds, cut] & ok[:, None],
             ok=ok,
             **gravity,
+            swept=swept,
         ),
         failed,
     )

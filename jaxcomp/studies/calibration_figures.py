@@ -38,7 +38,7 @@ def plot_errors(report: dict, arrays: dict, path: Path) -> Path:
     jax_rel = 100 * (arrays["jax_estimate"][ok, : 2 * n] / truth[ok, : 2 * n] - 1)
     jax_rel[:, n:] *= shown[ok]
     m = arrays["scipy_estimate"].shape[0]
-    sci_rel = 100 * (arrays["scipy_estimate"] / truth[:m, : 2 * n] - 1)
+    sci_rel = 100 * (arrays["scipy_estimate"] / truth[arrays["scipy_worlds"], : 2 * n] - 1)
     panels = [
         ("ratio error (%)", jax_rel[:, :n], sci_rel[:, :n]),
         ("friction loss error (%)", jax_rel[:, n:], sci_rel[:, n:]),
@@ -66,7 +66,7 @@ def plot_errors(report: dict, arrays: dict, path: Path) -> Path:
     ax.set_ylabel("JAX COM offset error (mm)")
     ax.set_title("grey: prior-dominated (not determined by the sweeps)", fontsize=8)
     fig.suptitle(
-        f"{report['worlds']} worlds (scipy: first {m}), seed {report['seed']}, plan "
+        f"{report['worlds']} worlds (scipy: {m} of them), seed {report['seed']}, plan "
         f"{report['plan']['name']}, {report['record_rate_hz']:g} Hz, {report['backend']}"
     )
     fig.tight_layout()

@@ -22,8 +22,10 @@ def parameter_table(est: Estimates, relative: int) -> dict:
     """{parameter: {unit, identified, bias, rmse, spread, ..., coverage, spread_over_std}}
     over the worlds (``evaluate.error_statistics``); the first ``relative`` parameters
     (ratio and friction) also relative to the truth (``relative_bias``, ``relative_rmse``,
-    ``relative_p95_abs``). ``identified``: fraction of the fits where the data determine it."""
-    err = est.error
+    ``relative_p95_abs``), over the fits where the data bear on it (``Estimates.determined``:
+    a joint's friction counts only where its joint is swept). ``identified``: fraction of the
+    fits where the data determine it."""
+    err = np.where(est.determined, est.error, np.nan)
     stats = error_statistics(err, est.std)
     with np.errstate(invalid="ignore", divide="ignore"):
         rel = error_statistics(err[:, :relative] / est.truth[:, :relative])
@@ -102,7 +104,7 @@ def gravity_summary(errors: np.ndarray) -> dict:
 
 def gravity_comparison(jax: Estimates, scipy: Estimates) -> dict:
     """On the worlds both fits have (the scipy sample, fits ok): how often the JAX fit's
-    gravity-current error pooled over the joints (``Estimates.gravity_pooled``) is worse than
+    gravity-current error pooled over the swept joints (``Estimates.gravity_pooled``) is worse than
     the scipy fit's, and the medians of both."""
     j, s = jax.gravity_pooled[: len(scipy.ok)], scipy.gravity_pooled
     both = jax.ok[: len(scipy.ok)] & scipy.ok & np.isfinite(j) & np.isfinite(s)
