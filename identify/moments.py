@@ -361,6 +361,33 @@ def pack(recs: Sequence[Recording], buffer: PackBuffer | None = None) -> tuple[P
     return packed, L
 
 
+# ------------------------------------------------------------------- shared maths (JAX)
+def features(theta: jax.Array, dh: jax.Array, current: jax.Array) -> jax.Array:
+    """phi = [z, current] (..., 3 (n + 1) + 1) of samples: z = [sin theta u, cos theta u, u]
+    with u = [1, dh]; ``theta`` (...) rad the swept angle, ``dh`` (..., n) rad, ``current``
+    (...) A the swept joint's."""
+    u = jnp.concatenate([jnp.ones_like(dh[..., :1]), dh], axis=-1)  # (..., n + 1)
+    trig = jnp.stack([jnp.sin(theta), jnp.cos(theta), jnp.ones_like(theta)], axis=-1)
+    z = (trig[..., :, None] * u[..., None, :]).reshape(*theta.shape, -1)
+    return jnp.concatenate([z, current[..., None]], axis=-1)
+
+
+def assemble(G: jax.Array, d: jax.Array, v: jax.Array, n: int) -> jax.Array:
+    """The moments (S, D, D) of S sweeps from G (S, 2, Z + 1, Z + 1), each pass's sums of
+    phi phi^T (``features``), and its direction ``d`` (S, 2) and velocity ``v`` (S, 2) rad/s.
+
+    psi = E phi with E constant over a pass (d and v are multiples of z's "one"): the
+    moments are sum over passes of E G E^T."""
+    S, Z = G.shape[0], G.shape[-1] - 1
+    D = moment_size(n)
+    one = z_index(2, 0, n)
+    E = jnp.zeros((S, 2, D, Z + 1), G.dtype)
+    E = E.at[:, :, jnp.arange(Z), jnp.arange(Z)].set(1.0)
+    E = E.at[:, :, Z, one].set(d).at[:, :, Z + 1, one].set(v)
+    E = E.at[:, :, Z + 2, Z].set(1.0)
+    return jnp.einsum("skai,skij,skbj->sab", E, G, E)
+
+
 # ----------------------------------------------------------------------- reduction (JAX)
 def _median(x: jax.Array, keep: jax.Array, axis: int = -1) -> jax.Array:
     """Median of ``x`` over ``axis`` where ``keep``, exactly ``np.median`` of the kept values
@@ -383,7 +410,6 @@ def reduce_packed(p: Packed, L: int, fraction: float, trim: float) -> SweepMomen
     vmap-able; ``packed_moments`` runs it on a stack). ``fraction`` and ``trim``: see
     ``identify.bins.steady``."""
     n = p.samples.shape[0] - _ROWS
-    S = p.joint.shape[0]
     off = jnp.arange(L)
     valid = off < p.length[..., None]  # (S, 2, L)
     idx = jnp.minimum(p.start[..., None] + off, p.samples.shape[-1] - 1)
@@ -407,21 +433,9 @@ def reduce_packed(p: Packed, L: int, fraction: float, trim: float) -> SweepMomen
     count = jnp.sum(steady, axis=(1, 2))
     hold = jnp.sum(q * w, axis=(1, 2)) / jnp.maximum(count, 1)[:, None]  # (S, n)
     dh = (q - hold[:, None, None, :]) * (1.0 - swept)  # (S, 2, L, n), 0 for the swept joint
-    u = jnp.concatenate([jnp.ones_like(dh[..., :1]), dh], axis=-1)  # (S, 2, L, n + 1)
-    trig = jnp.stack([jnp.sin(theta), jnp.cos(theta), jnp.ones_like(theta)], axis=-1)
-    z = (trig[..., :, None] * u[..., None, :]).reshape(*theta.shape, -1)  # (S, 2, L, 3 (n + 1))
-    # psi = E [z, current] with E constant over a pass (d and v are multiples of z's "one"):
-    # the moments are E G E^T with G the moments of [z, current] over the steady samples
-    phi = jnp.concatenate([z, current[..., None]], axis=-1) * w
+    phi = features(theta, dh, current) * w  # (S, 2, L, Z + 1)
     G = jnp.einsum("skla,sklb->skab", phi, phi)  # (S, 2, Z + 1, Z + 1)
-    Z = z.shape[-1]
-    D = moment_size(n)
-    one = z_index(2, 0, n)
-    E = jnp.zeros((S, 2, D, Z + 1))
-    E = E.at[:, :, jnp.arange(Z), jnp.arange(Z)].set(1.0)
-    E = E.at[:, :, Z, one].set(d[..., 0]).at[:, :, Z + 1, one].set(v[..., 0])
-    E = E.at[:, :, Z + 2, Z].set(1.0)
-    moments = jnp.einsum("skai,skij,skbj->sab", E, G, E)
+    moments = assemble(G, d[..., 0], v[..., 0], n)
     return SweepMoments(
         joint=p.joint,
         hold=hold,
@@ -460,3 +474,198 @@ def packed_moments(
     samples; a leading axis on every field), on their bucketed sweeps: padding sweeps have
     zero count."""
     return _packed_moments(packed, length, fraction, trim, on_cpu())
+
+
+# ------------------------------------------------------------ streaming (JAX, sample by sample)
+#: Relative tolerance of a pass's cruise in the commanded speed (``stream_plan``).
+CRUISE_TOLERANCE = 1e-6
+
+
+class StreamPlan(NamedTuple):
+    """What a plan tells ``stream_add`` about each recorded sample (R samples) and
+    ``stream_moments`` about each of its S sweeps: host arrays shared by every world recording
+    the plan (n joints).
+
+    slot (R,) int: the sample's sweep (-1: none); passage (R,) int: 0 the first pass, 1 the
+    return; joint (R,) int: the swept joint (0 outside sweeps); direction (R,) float, +1 / -1;
+    speed (R,) rad/s: the commanded pass speed where the plan makes the sample steady, 0
+    elsewhere; origin (R, n) rad: the commanded pose of the sample's sweep (its slot's).
+    sweep_joint (S,) int, sweep_direction (S, 2) float (0: no such pass), sweep_origin (S, n)
+    rad: per sweep.
+    """
+
+    slot: np.ndarray
+    passage: np.ndarray
+    joint: np.ndarray
+    direction: np.ndarray
+    speed: np.ndarray
+    origin: np.ndarray
+    sweep_joint: np.ndarray
+    sweep_direction: np.ndarray
+    sweep_origin: np.ndarray
+
+    def rows(self) -> tuple[np.ndarray, ...]:
+        """The per-sample fields (slot, passage, joint, direction, speed, origin)."""
+        return self[:6]
+
+
+def stream_plan(
+    t: np.ndarray,
+    q_cmd: np.ndarray,
+    speed_cmd: np.ndarray,
+    joint: np.ndarray,
+    direction: np.ndarray,
+    trim: float = STEADY_TRIM,
+) -> StreamPlan:
+    """The ``StreamPlan`` of R recorded samples at ``t`` (R,) s labelled ``joint`` and
+    ``direction`` (R,) (as a ``Recording``), whose commanded pose is ``q_cmd`` (R, n) rad and
+    the swept joint's commanded velocity ``speed_cmd`` (R,) rad/s.
+
+    The steady samples of a pass, decided from the plan alone so that moments can be summed
+    while the samples arrive: those at the pass's cruise (its largest commanded speed, within
+    ``CRUISE_TOLERANCE``) more than ``trim`` s inside its first and last such sample.
+    ``stream_add`` also drops those whose measured speed is off the cruise by more than
+    (1 - ``fraction``) of it (ripple, stick-slip), as ``identify.bins.steady``.
+    """
+    t, q_cmd, speed_cmd = (np.asarray(a, float) for a in (t, q_cmd, speed_cmd))
+    lay = layout(joint, direction)
+    R, n = q_cmd.shape
+    slot = np.full(R, -1, np.int64)
+    passage = np.zeros(R, np.int64)
+    speed = np.zeros(R)
+    sweep_origin = np.zeros((lay.joint.size, n))
+    for s in range(lay.joint.size):
+        first_steady = lay.first[s, 0]
+        for k in (1, 0):
+            f, m = int(lay.first[s, k]), int(lay.length[s, k])
+            if m == 0:
+                continue
+            part = slice(f, f + m)
+            slot[part], passage[part] = s, k
+            v = speed_cmd[part] * lay.direction[s, k]
+            cruise = v.max()
+            at = v >= cruise * (1.0 - CRUISE_TOLERANCE)
+            if cruise <= 0:
+                continue
+            tt = t[part]
+            on = np.flatnonzero(at)
+            steady = at & (tt > tt[on[0]] + trim) & (tt < tt[on[-1]] - trim)
+            speed[part] = np.where(steady, cruise, 0.0)
+            if steady.any():
+                first_steady = f + int(np.argmax(steady))
+        sweep_origin[s] = q_cmd[first_steady]
+    used = slot >= 0
+    origin = np.where(used[:, None], sweep_origin[np.maximum(slot, 0)], 0.0)
+    return StreamPlan(
+        slot,
+        passage,
+        np.where(used, joint, 0).astype(np.int64),
+        np.where(used, direction, 0).astype(float),
+        speed,
+        origin,
+        lay.joint,
+        lay.direction.astype(float),
+        sweep_origin,
+    )
+
+
+class StreamSums(NamedTuple):
+    """Running sums over a recording's steady samples, per sweep (S) and pass (2): what
+    ``stream_add`` adds to sample by sample and ``stream_moments`` turns into moments. n joints,
+    P = 3 (n + 1) + 1. outer (S, 2, P, P): sum of phi phi^T, phi = ``features`` with dh the
+    pose less the sweep's origin (swept joint: 0); offset (S, 2, n) rad: sum of the pose less
+    the origin; speed
+    (S, 2) rad/s: sum of the swept joint's speed along the pass; count (S, 2)."""
+
+    outer: jax.Array
+    offset: jax.Array
+    speed: jax.Array
+    count: jax.Array
+
+
+def stream_init(sweeps: int, n: int) -> StreamSums:
+    """Zero ``StreamSums`` of ``sweeps`` sweeps of n joints (host arrays, float64)."""
+    P = moment_size(n) - 2
+    return StreamSums(
+        np.zeros((sweeps, 2, P, P)),
+        np.zeros((sweeps, 2, n)),
+        np.zeros((sweeps, 2)),
+        np.zeros((sweeps, 2)),
+    )
+
+
+def stream_add(
+    sums: StreamSums,
+    row: tuple,
+    q: jax.Array,
+    dq: jax.Array,
+    current: jax.Array,
+    valid: jax.Array,
+    fraction: float = STEADY_FRACTION,
+    current_lag: float = 0.0,
+) -> StreamSums:
+    """``sums`` with one sample of one world added (pure, jit- and vmap-able): ``row`` the
+    sample's ``StreamPlan.rows()`` entries, q (n,) rad, dq (n,) rad/s, current (n,) A;
+    ``valid`` False adds nothing. ``current_lag`` s: the current flowed at q - lag dq."""
+    slot, passage, joint, direction, cruise, origin = row
+    n = q.shape[-1]
+    pose = q - current_lag * dq
+    swept = jax.nn.one_hot(joint, n, dtype=q.dtype)
+    speed = dq[joint] * direction
+    steady = (
+        valid & (slot >= 0) & (cruise > 0) & (jnp.abs(speed - cruise) <= (1.0 - fraction) * cruise)
+    )
+    w = steady.astype(q.dtype)
+    offset = pose - origin
+    phi = features(pose[joint], offset * (1.0 - swept), current[joint]) * w
+    at = (jnp.maximum(slot, 0), passage)
+    return StreamSums(
+        sums.outer.at[at].add(jnp.outer(phi, phi)),
+        sums.offset.at[at].add(w * offset),
+        sums.speed.at[at].add(w * speed),
+        sums.count.at[at].add(w),
+    )
+
+
+def stream_moments(sums: StreamSums, plan: StreamPlan) -> tuple[jax.Array, ...]:
+    """(hold (S, n) rad, moments (S, D, D), count (S,)) of one world's ``sums`` (pure): the
+    sums about each sweep's origin moved to its held pose (the mean over its steady samples),
+    exactly: u = [1, dh - m] is a linear map of [1, dh]."""
+    n = sums.offset.shape[-1]
+    count = sums.count.sum(axis=1)
+    mean = sums.offset.sum(axis=1) / jnp.maximum(count, 1)[:, None]  # (S, n)
+    swept = jax.nn.one_hot(jnp.asarray(plan.sweep_joint), n, dtype=mean.dtype)
+    m = mean * (1.0 - swept)
+    M = jnp.broadcast_to(jnp.eye(n + 1), (m.shape[0], n + 1, n + 1)).at[:, 1:, 0].set(-m)
+    one = jnp.ones((1, 1))
+    T = jax.vmap(lambda a: jax.scipy.linalg.block_diag(a, a, a, one))(M)
+    G = jnp.einsum("sab,skbc,sdc->skad", T, sums.outer, T)
+    d = jnp.asarray(plan.sweep_direction)
+    v = d * sums.speed / jnp.maximum(sums.count, 1)
+    hold = jnp.where(count[:, None] > 0, jnp.asarray(plan.sweep_origin) + mean, 0.0)
+    return hold, assemble(G, d, v, n), count
+
+
+@jax.jit
+def _stream_moments_batch(sums: StreamSums, plan: StreamPlan) -> tuple[jax.Array, ...]:
+    return jax.vmap(stream_moments, (0, None))(sums, plan)
+
+
+def streamed_moments(
+    sums: StreamSums, plan: StreamPlan, gravity: Sequence[float] = STANDARD_GRAVITY
+) -> SweepMoments:
+    """The ``SweepMoments`` (host arrays, a leading world axis as ``sweep_moments_batch``'s) of
+    W worlds' ``sums`` (a leading axis W) of the plan ``plan`` (its S sweeps)."""
+    S = plan.sweep_joint.size
+    sums = StreamSums(*(a[:, :S] for a in sums))
+    hold, moments, count = (np.asarray(a) for a in _stream_moments_batch(sums, plan))
+    w = hold.shape[0]
+    return SweepMoments(
+        joint=np.broadcast_to(plan.sweep_joint, (w, S)).astype(np.int64),
+        hold=hold,
+        moments=moments,
+        count=np.rint(count).astype(np.int64),
+        gravity=np.broadcast_to(np.asarray(gravity, float), (w, 3)).copy(),
+        payload_mass=np.zeros(w),
+        payload_com=np.zeros((w, 3)),
+    )

@@ -1,5 +1,7 @@
-"""Sweep moments: the packed layout, and the JAX reduction against sums over the samples."""
+"""Sweep moments: the packed layout, the JAX reduction against sums over the samples, and the
+same sums streamed sample by sample."""
 
+import jax
 import numpy as np
 import pytest
 import synthetic
@@ -12,6 +14,10 @@ from jaxcomp.identify.moments import (
     moment_size,
     pack,
     packed_moments,
+    stream_add,
+    stream_init,
+    stream_plan,
+    streamed_moments,
     sweep_moments,
 )
 from jaxcomp.recording import Recording
@@ -125,3 +131,34 @@ def test_a_recording_without_sweeps_is_one_clear_error(rec):
     )  # fmt: skip
     with pytest.raises(InputError, match="recording 0 has no sweep"):
         pack([flat])
+
+
+def test_streamed_sums_are_the_packed_moments(rec):
+    """``stream_add`` sample by sample, about an origin away from the held pose, then
+    ``streamed_moments``: the moments of ``sweep_moments`` on the same steady samples (the
+    plan's speeds stand in for the measured ones: fraction 0 keeps every planned sample)."""
+    keep = steady(rec)
+    dt = np.diff(rec.t, prepend=rec.t[0] - 1e-3)
+    fake = stream_plan(rec.t, rec.q, np.r_[0.0, np.diff(rec.q, axis=0)[:, 0]] / dt, rec.joint,
+                       rec.direction)  # fmt: skip
+    lay = layout(rec.joint, rec.direction)
+    assert np.array_equal(fake.sweep_joint, lay.joint) and fake.sweep_origin.shape == (14, 6)
+    origin = fake.sweep_origin + 0.3  # far from the held poses: the shift must be exact
+    plan = fake._replace(
+        speed=np.where(keep, 1e3, 0.0),
+        origin=np.where(fake.slot[:, None] >= 0, origin[np.maximum(fake.slot, 0)], 0.0),
+        sweep_origin=origin,
+    )
+    step = jax.jit(lambda s, row, x: stream_add(s, row, *x, True, fraction=0.0))
+    sums, _ = jax.lax.scan(
+        lambda s, x: (step(s, x[0], x[1:]), None),
+        stream_init(14, 6),
+        (plan.rows(), rec.q, rec.dq, rec.current),
+    )
+    got = streamed_moments(jax.tree.map(lambda a: a[None], sums), plan)
+    want = sweep_moments(rec)
+    np.testing.assert_array_equal(got.joint[0], want.joint)
+    np.testing.assert_array_equal(got.count[0], want.count)
+    np.testing.assert_allclose(got.hold[0], want.hold, rtol=0, atol=1e-12)
+    scale = np.abs(want.moments).max()
+    np.testing.assert_allclose(got.moments[0], want.moments, rtol=1e-9, atol=1e-11 * scale)
