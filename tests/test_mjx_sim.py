@@ -29,6 +29,7 @@ from jaxcomp.hardware.mjx import (
     Move,
     Policy,
     PushSchedule,
+    Reduction,
     fault_names,
     reference_trajectory,
     servo_gains,
@@ -138,12 +139,17 @@ def batch():
     bt = BatchTruth.from_truths(robot, truths, payload=[0.0, 0.0, 0.6, 0.0], gravity=gravity)
     mjx_sim = MjxSimulator(robot, payload=True)
     chunks, calls = [], []
+    rows = np.arange(len(q_ref))[:, None] % 7.0  # a weight per sample, for the reduction
+    reduce = Reduction(
+        lambda c, x, q, dq, cur, ok: (c[0] + ok * x * cur, c[1] + ok), (np.zeros(6), 0.0), rows, 1
+    )
     rec = mjx_sim.run(
         bt,
         q_ref,
         seed=5,
         progress=lambda done, total: calls.append((done, total)),
         on_chunk=lambda first, c: chunks.append((first, c)),
+        reduce=reduce,
     )
     return dict(
         cpu=cpu,
@@ -237,6 +243,10 @@ def test_chunks_stream_the_same_samples(batch):
     np.testing.assert_array_equal(q, rec.q)
     np.testing.assert_array_equal(cur, rec.current)
     assert [first for first, _ in chunks][0] == 0
+    # the reduction on the device saw every recorded sample once, noise included
+    weights = np.arange(t) % 7.0
+    np.testing.assert_allclose(rec.reduced[0], np.einsum("r,wrn->wn", weights, rec.current))
+    np.testing.assert_array_equal(rec.reduced[1], np.full(4, t))
 
 
 # ----------------------------------------------------------------------------- closed loop

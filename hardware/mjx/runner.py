@@ -15,8 +15,8 @@ measured on the Gen3 Lite in 4 worlds of drawn truths over 4.9 s of +-20-30 deg 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, NamedTuple
+from collections.abc import Callable, Hashable, Sequence
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -51,6 +51,8 @@ class MjxRecording(NamedTuple):
             ``following_error`` of its target, faster than ``overspeed`` or at a joint limit
             (what stops the CPU Simulator), -1 if none; the MJX worlds keep going regardless.
         every: the recording decimation k.
+        reduced: the final carry of the run's ``Reduction`` (host arrays, a leading axis W),
+            None without one.
     """
 
     t: np.ndarray
@@ -60,6 +62,26 @@ class MjxRecording(NamedTuple):
     q_start: np.ndarray
     fault_step: np.ndarray
     every: int
+    reduced: Any = None
+
+
+class Reduction(NamedTuple):
+    """A reduction of each world's recorded samples on the device, inside the run's loop.
+
+    ``step(carry, x, q, dq, current, valid) -> carry`` (pure JAX, one world, one recorded
+    sample; vmapped over the worlds here): ``x`` the sample's row of ``xs``, q (n,) rad,
+    dq (n,) rad/s, current (n,) A (noise included) the state after the plan step; ``valid``
+    False for samples past the plan's end or of the settling (they must add nothing).
+    ``init``: one world's initial carry (a pytree of host arrays). ``xs``: a pytree of host
+    arrays (R, G, ...) with R = ceil(T / every), the rows shared by the worlds that follow
+    reference g (world w reads ``xs[r, group[w]]``). ``key``: hashable, the same for the same
+    ``step`` (the compiled chunk function is cached under it).
+    """
+
+    step: Callable
+    init: Any
+    xs: Any
+    key: Hashable
 
 
 def run(
@@ -75,6 +97,9 @@ def run(
     on_chunk: Callable[[int, MjxRecording], None] | None,
     keep: bool,
     group: Sequence[int] | np.ndarray | None,
+    reduce: Reduction | None = None,
+    record: Sequence[int] | np.ndarray | None = None,
+    world_ids: Sequence[int] | np.ndarray | None = None,
 ) -> MjxRecording:
     """``MjxSimulator.run`` (see there): settle, then the plan, chunk by chunk."""
     every = int(every)
@@ -108,20 +133,37 @@ def run(
     pad = world_padding(sim.mesh, w)
     wp = len(pad)
     fields = {k: v[pad] for k, v in fields.items()}
-    fields["key"] = sim._world_keys(seed, w)[pad]
+    ids = np.arange(w) if world_ids is None else np.asarray(world_ids, np.int64)
+    if ids.shape != (w,) or (ids < 0).any():
+        raise InputError(f"world_ids must be ({w},) ints >= 0")
+    rows = np.arange(w) if record is None else np.asarray(record, np.int64).reshape(-1)
+    if ((rows < 0) | (rows >= w)).any():
+        raise InputError(f"record must hold world indices in [0, {w})")
+    fields["key"] = sim._world_keys(seed, ids)[pad]
     fields["group"] = group.astype(np.int32)[pad]
     q0 = q0[pad]
     chunk = chunk_length(
         sim.chunk_steps, sim.backend, wp, n, dtype.itemsize, every, max(t_total, settle_steps, 1)
     )
     limits = (sim.following_error, sim.overspeed)
-    key = ("open", wp, chunk, every, groups, limits, sim.mesh)
-    fn = sim._compiled_function(key, lambda: _build(sim, chunk, every, *limits))
+    n_rec = -(-t_total // every)
+    xs = _reduction_rows(reduce, n_rec, groups)
+    shape = lambda a: (np.shape(a), np.result_type(a).str)  # noqa: E731
+    red_key = None if reduce is None else (reduce.key, str(jax.tree.map(shape, (reduce.init, xs))))
+    key = ("open", wp, chunk, every, groups, limits, sim.mesh, red_key, rows.size)
+    step = None if reduce is None else reduce.step
+    fn = sim._compiled_function(key, lambda: _build(sim, chunk, every, *limits, step))
     put, put_shared = placement(sim.mesh)
     fields = put(fields)
+    rows_dev = put_shared(rows.astype(np.int32))
     clock.mark()
     zeros = np.zeros((wp, n), dtype)
-    carry = put((q0.astype(dtype), zeros, zeros, np.full(wp, -1, np.int32)))
+    acc = () if reduce is None else _broadcast(reduce.init, wp, put)
+    carry = (*put((q0.astype(dtype), zeros, zeros, np.full(wp, -1, np.int32))), acc)
+    per = chunk // every
+    xs_of = lambda s: jax.tree.map(  # noqa: E731  the rows of the chunk from step s, padded
+        lambda a: put_shared(a[np.minimum(s // every + np.arange(per), len(a) - 1)]), xs
+    )
     # settle: servo to q0 (target q0 = 0 reference + per-world offset q0)
     settle_fields = dict(fields, offset=put(q0.astype(dtype)))
     zero_ref = put_shared(np.zeros((chunk, groups, n), dtype))
@@ -130,21 +172,24 @@ def run(
             settle_fields,
             carry,
             zero_ref,
+            xs_of(0),
+            rows_dev,
             np.int32(s - settle_steps),
             np.int32(min(chunk, settle_steps - s)),
         )
-    carry = carry[:3] + (carry[3] * 0 - 1,)
+    carry = (*carry[:3], carry[3] * 0 - 1, carry[4])
     q_start = np.asarray(carry[0])[:w].astype(float)
     clock.mark()
     plan_fields = dict(fields, offset=put(zeros))
-    n_rec = -(-t_total // every)
-    out = {k: np.zeros((w, n_rec, n), dtype) for k in ("q", "dq", "current")} if keep else {}
+    out = (
+        {k: np.zeros((rows.size, n_rec, n), dtype) for k in ("q", "dq", "current")} if keep else {}
+    )
 
     def consume(pending: tuple) -> None:
         """Copy a chunk's samples to the host, stream them and report progress."""
         s, k, rec = pending
         nr = -(-k // every)  # samples of the chunk's valid steps
-        q, dq, cur = (np.asarray(a)[:w, :nr] for a in rec)
+        q, dq, cur = (np.asarray(a)[:, :nr] for a in rec)
         first = s // every
         if out:
             out["q"][:, first : first + nr] = q
@@ -162,7 +207,9 @@ def run(
         ref = np.empty((chunk, groups, n), dtype)
         k = min(chunk, t_total - s)
         ref[:k], ref[k:] = q_ref[s : s + k], q_ref[s + k - 1]
-        carry, rec = fn(plan_fields, carry, put_shared(ref), np.int32(s), np.int32(k))
+        carry, rec = fn(
+            plan_fields, carry, put_shared(ref), xs_of(s), rows_dev, np.int32(s), np.int32(k)
+        )
         if pending is not None:  # host work overlaps the chunk just dispatched
             consume(pending)
         pending = (s, k, rec)
@@ -178,16 +225,41 @@ def run(
         q_start,
         np.asarray(carry[3])[:w].astype(int),
         every,
+        None if reduce is None else jax.tree.map(lambda a: np.asarray(a)[:w], carry[4]),
     )
 
 
+def _reduction_rows(reduce: Reduction | None, n_rec: int, groups: int) -> Any:
+    """The reduction's rows (R, G, ...) as host arrays, checked (an empty one without it)."""
+    if reduce is None:
+        return np.zeros((1, groups))
+    xs = jax.tree.map(np.asarray, reduce.xs)
+    for a in jax.tree.leaves(xs):
+        if a.shape[:2] != (n_rec, groups):
+            raise InputError(f"the reduction's rows must be ({n_rec}, {groups}, ...) arrays")
+    return xs
+
+
+def _broadcast(init: Any, worlds: int, put: Callable) -> Any:
+    """One world's initial carry for every world, made on the device(s) (no host copies)."""
+    one = put(jax.tree.map(lambda a: np.asarray(a)[None], init))
+    return jax.tree.map(lambda a: jnp.repeat(a, worlds, axis=0), one)
+
+
 def _build(
-    sim: MjxSimulator, chunk: int, every: int, following_error: float, overspeed: float
+    sim: MjxSimulator,
+    chunk: int,
+    every: int,
+    following_error: float,
+    overspeed: float,
+    reduce_step: Callable | None,
 ) -> Callable:
     """The jitted chunk function of ``run``: (fields, carry, reference rows (chunk, G, n),
-    first step, valid steps) -> (carry, recorded (q, dq, current) (W, chunk // every, n)).
-    Carry per world: qpos, qvel, qacc_warmstart, fault step (first step with a joint at its
-    limit, beyond ``following_error`` rad of its target or faster than ``overspeed`` rad/s)."""
+    reduction rows (chunk // every, G, ...), recorded worlds (M,), first step, valid steps) ->
+    (carry, recorded (q, dq, current) (M, chunk // every, n)). Carry per world: qpos, qvel,
+    qacc_warmstart, fault step (first step with a joint at its limit, beyond
+    ``following_error`` rad of its target or faster than ``overspeed`` rad/s), the reduction's
+    carry (``Reduction``; () without one)."""
     mx, d0, dtype, n = sim._mx, sim._d0, sim.dtype, sim.n
     lo = jnp.asarray(sim._hard[:, 0], dtype)
     hi = jnp.asarray(sim._hard[:, 1], dtype)
@@ -225,12 +297,27 @@ def _build(
 
         return jax.vmap(one)(f["key"], f["noise"])
 
-    def chunk_fn(f, carry, qr, start, n_valid):
-        carry, (q, dq, tau) = scan_decimated(
-            lambda c, i, qr_i: step(f, c, i, qr_i, start, n_valid), carry, qr, every
+    def reduce(f, acc, xs, q, dq, cur, valid):
+        """The reduction over the chunk's recorded samples, world by world."""
+        vstep = jax.vmap(reduce_step, in_axes=(0, 0, 0, 0, 0, None))
+
+        def body(a, sample):
+            x, qi, dqi, ci, vi = sample
+            mine = jax.tree.map(lambda r: r[f["group"]], x)  # each world's row
+            return vstep(a, mine, qi, dqi, ci, vi), None
+
+        return jax.lax.scan(body, acc, (xs, q, dq, cur, valid))[0]
+
+    def chunk_fn(f, carry, qr, xs, rows, start, n_valid):
+        state, (q, dq, tau) = scan_decimated(
+            lambda c, i, qr_i: step(f, c, i, qr_i, start, n_valid), carry[:4], qr, every
         )
-        times = start + jnp.arange(groups) * every
+        offsets = jnp.arange(groups) * every
+        times = start + offsets
         cur = f["ratio"][None] * tau + jax.vmap(lambda t: noise(f, t))(times)
-        return carry, tuple(jnp.swapaxes(a, 0, 1) for a in (q, dq, cur))
+        acc = carry[4]
+        if reduce_step is not None:
+            acc = reduce(f, acc, xs, q, dq, cur, (times >= 0) & (offsets < n_valid))
+        return (*state, acc), tuple(jnp.swapaxes(a, 0, 1)[rows] for a in (q, dq, cur))
 
     return sim._ahead_of_time(chunk_fn, carry_arg=1)

@@ -186,6 +186,9 @@ class MjxSimulator:
         on_chunk: Callable[[int, MjxRecording], None] | None = None,
         keep: bool = True,
         group: Sequence[int] | np.ndarray | None = None,
+        reduce: runner.Reduction | None = None,
+        record: Sequence[int] | np.ndarray | None = None,
+        world_ids: Sequence[int] | np.ndarray | None = None,
     ) -> MjxRecording:
         """Drive every world through the position targets ``q_ref`` (T, n) rad at 1 kHz.
 
@@ -197,10 +200,14 @@ class MjxSimulator:
         is servoed there for ``settle_steps`` steps (as a fresh CPU ``Simulator``), then
         follows ``q_ref``: step i commands q_ref[i] and records the state after it. Records
         every ``every``-th sample (0, every, ...); the current noise of world w at step i is
-        ``noise_w N(0, 1)`` from ``fold_in(fold_in(PRNGKey(seed), w), i)``, so it does not
-        depend on chunking. ``progress(steps_done, steps_total)`` after each chunk;
+        ``noise_w N(0, 1)`` from ``fold_in(fold_in(PRNGKey(seed), id_w), i)``, ``id_w`` =
+        ``world_ids[w]`` (default w), so it depends neither on chunking nor, with global ids,
+        on how worlds are batched. ``progress(steps_done, steps_total)`` after each chunk;
         ``on_chunk(first_sample, recording_of_the_chunk)`` streams samples; ``keep=False``
-        returns q, dq, current as None (bounded host memory). See ``runner``.
+        returns q, dq, current as None (bounded host memory). ``record``: only these worlds'
+        samples leave the device (default all; q, dq, current then have M = len(record) rows).
+        ``reduce``: a ``runner.Reduction`` of every world's samples on the device, its final
+        carry returned as ``reduced``. See ``runner``.
         """
         return runner.run(
             self,
@@ -214,6 +221,9 @@ class MjxSimulator:
             on_chunk=on_chunk,
             keep=keep,
             group=group,
+            reduce=reduce,
+            record=record,
+            world_ids=world_ids,
         )
 
     def run_closed_loop(
@@ -295,11 +305,12 @@ class MjxSimulator:
             )
         return np.array(q)
 
-    def _world_keys(self, seed: int, worlds: int) -> np.ndarray:
-        """(worlds, 2) PRNG keys of the current noise: world w's is
-        ``fold_in(PRNGKey(seed), w)``."""
+    def _world_keys(self, seed: int, worlds: int | np.ndarray) -> np.ndarray:
+        """(W, 2) PRNG keys of the current noise: world w's is ``fold_in(PRNGKey(seed), w)``
+        for w in ``worlds`` (ids, or a count: 0 .. worlds - 1)."""
+        ids = np.arange(worlds) if np.ndim(worlds) == 0 else np.asarray(worlds)
         fold = jax.vmap(jax.random.fold_in, (None, 0))
-        return np.asarray(fold(jax.random.PRNGKey(seed), jnp.arange(worlds)))
+        return np.asarray(fold(jax.random.PRNGKey(seed), jnp.asarray(ids, jnp.int32)))
 
     def _compiled_function(self, key: Hashable, build: Callable[[], Callable]) -> Callable:
         """The chunk function of ``key``, built once per simulator. ``key`` must hold every
