@@ -19,6 +19,11 @@ every joint's q of every pass back to back; the reduction (JAX, jitted, on the d
 a GPU reduces thousands of recordings at once) finds the steady samples
 (``identify.bins.steady``'s rule), their mean pose and the moments. The median speed of a pass
 takes every ``MEDIAN_STRIDE``-th sample.
+
+Streaming (``stream_plan``, ``stream_add``, ``streamed_moments``): the same sums added sample by
+sample while a simulation runs (the MJX studies, on the device), with the steady samples chosen
+from the plan's commanded speed, which needs no median; the sums are taken about each sweep's
+commanded pose and moved to the held pose at the end, exactly (u is affine in the pose).
 """
 
 from __future__ import annotations

@@ -21,6 +21,8 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
@@ -158,7 +160,7 @@ def run(
     rows_dev = put_shared(rows.astype(np.int32))
     clock.mark()
     zeros = np.zeros((wp, n), dtype)
-    acc = () if reduce is None else _broadcast(reduce.init, wp, put)
+    acc = () if reduce is None else _broadcast(reduce.init, wp, sim.mesh, put_shared)
     carry = (*put((q0.astype(dtype), zeros, zeros, np.full(wp, -1, np.int32))), acc)
     per = chunk // every
     xs_of = lambda s: jax.tree.map(  # noqa: E731  the rows of the chunk from step s, padded
@@ -240,10 +242,13 @@ def _reduction_rows(reduce: Reduction | None, n_rec: int, groups: int) -> Any:
     return xs
 
 
-def _broadcast(init: Any, worlds: int, put: Callable) -> Any:
-    """One world's initial carry for every world, made on the device(s) (no host copies)."""
-    one = put(jax.tree.map(lambda a: np.asarray(a)[None], init))
-    return jax.tree.map(lambda a: jnp.repeat(a, worlds, axis=0), one)
+def _broadcast(init: Any, worlds: int, mesh: Any, put_shared: Callable) -> Any:
+    """One world's initial carry for every world, made on the device(s), split along the
+    mesh's ``"batch"`` axis (no host copy of the W worlds')."""
+    one = put_shared(jax.tree.map(lambda a: np.asarray(a)[None], init))
+    out = None if mesh is None else NamedSharding(mesh, P("batch"))
+    repeat = lambda t: jax.tree.map(lambda a: jnp.repeat(a, worlds, axis=0), t)  # noqa: E731
+    return jax.jit(repeat, out_shardings=out)(one)
 
 
 def _build(

@@ -17,13 +17,13 @@ The stages, each in its own module and composed here (``run_study``): ``truth_dr
 ``calibration_figures`` and ``write_outputs`` (report).
 
 Recording (``plan_recording``): the simulator steps at 1 kHz and every ``every``-th state
-(default 10: 100 Hz) is streamed to the host, where each sweep is reduced to its moments as soon
-as its samples are in: only the M baseline worlds keep their whole recording. With the sweeps
-side by side (``simulate(parallel=True)``, the default on an accelerator) every sweep is in
-flight at once, so the host holds about the whole recording of the worlds of a run (4096 worlds
-of the default plan at 100 Hz: ~35 GB; ``--world-batch`` bounds it). The current noise is added
-on the host from a stream per world, so a world's numbers depend neither on how worlds are
-batched nor on the number of devices. Truth draws are per world too: world w is the same for
+(default 10: 100 Hz) is added on the device, inside the simulation loop, to its sweep's
+moment sums (the steady samples chosen from the plan's commanded speed): the host receives each
+world's small sums, whatever the plan's length, and the samples of the M baseline worlds only.
+With the sweeps side by side (``simulate(parallel=True)``, the default on an accelerator) each
+MJX world holds the sums of one sweep. The current noise is drawn on the device from the
+world's index in the study, so a world's numbers depend neither on how worlds are batched nor
+on the number of devices. Truth draws are per world too: world w is the same for
 every N > w. Worlds that fault (following error, overspeed, joint limit: what stops the CPU
 simulator and the real arm) are counted and left out of the statistics.
 

@@ -1,20 +1,20 @@
 """A calibration plan recorded in every world of a ``BatchTruth`` on MJX, each sweep reduced to
-its moments as soon as its samples are in.
+its moments on the device while the worlds run.
 
-The simulator steps at 1 kHz and every ``every``-th state (default 10: 100 Hz) is streamed to
-the host (``MjxSimulator.run(every=, on_chunk=)``), where each sweep is reduced to its moments
-(``identify.moments.sweep_moments_batch``): host memory stays bounded by one sweep of all
-worlds; only the first ``keep`` worlds keep their whole recording. With the sweeps side by side
-(``simulate(parallel=True)``) every sweep is in flight at once, so the host holds about the
-whole recording of the worlds of a run. The current noise of the truth is added on the host to
-the recorded samples, from a stream per world (``SeedSequence([seed, NOISE_STREAM, world])``):
-the same model as the simulator's (additive Gaussian, never fed back in POSITION mode), but a
-world's numbers then depend neither on how worlds are batched nor on the number of devices.
+The simulator steps at 1 kHz and every ``every``-th state (default 10: 100 Hz) is added to its
+sweep's running sums inside the compiled loop (``MjxSimulator.run(reduce=)`` with
+``identify.moments.stream_add``; the steady samples are chosen from the plan's commanded speed,
+``identify.moments.stream_plan``), so that only each world's small sums come back to the host:
+host memory does not grow with the plan's length, and only the first ``keep`` worlds' samples
+leave the device (for the scipy fit). The current noise is the simulator's, drawn on the device
+from ``fold_in(fold_in(PRNGKey(seed), id), step)`` with ``id`` the world's index in the study
+(``(id * K + k)`` for the K sweeps run side by side), so a world's numbers depend neither on how
+worlds are batched nor on the number of devices.
 
 Units: SI (rad, rad/s, A, s).
 """
 
-import dataclasses
+import functools
 import time
 from collections.abc import Callable
 from typing import NamedTuple
@@ -22,120 +22,59 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxcomp.constants import CONTROL_PERIOD
-from jaxcomp.errors import InputError
-from jaxcomp.hardware.mjx import SETTLE_STEPS, BatchTruth, MjxRecording, MjxSimulator
+from jaxcomp.hardware.mjx import SETTLE_STEPS, BatchTruth, MjxSimulator, Reduction
+from jaxcomp.identify.bins import STEADY_FRACTION
 from jaxcomp.identify.moments import (
+    StreamPlan,
+    StreamSums,
     SweepMoments,
     concat_moments,
     stack_worlds,
-    sweep_moments_batch,
+    stream_add,
+    stream_init,
+    stream_plan,
+    streamed_moments,
 )
 from jaxcomp.recording import Recording
 from jaxcomp.studies.plan_signal import PlanSignal, plan_segments, start_pose
 from jaxcomp.studies.truth_draw import truth_rows
 
-#: Seed stream of the current noise: SeedSequence([seed, NOISE_STREAM, world(, segment)]).
-NOISE_STREAM = 2
+
+def signal_stream_plan(signal: PlanSignal, every: int) -> StreamPlan:
+    """The ``StreamPlan`` of the samples of ``signal`` recorded every ``every`` steps (sample
+    i: the state after plan step i every, commanded q_ref there, at the commanded velocity of
+    that step)."""
+    rec = np.arange(0, len(signal.joint), every)
+    q = signal.q_ref
+    velocity = np.diff(q, axis=0, prepend=q[:1]) / CONTROL_PERIOD
+    joint = signal.joint[rec]
+    speed = velocity[rec, np.maximum(joint, 0)]
+    return stream_plan((rec + 1) * CONTROL_PERIOD, q[rec], speed, joint, signal.direction[rec])
 
 
-class SweepStream:
-    """``on_chunk`` of an MJX run of worlds [first, first + W): adds each world's current
-    noise, reduces every sweep to moments once its samples are in, keeps the whole recording
-    of the worlds below ``keep`` (global index)."""
+def sweep_reduction(plans: list[StreamPlan], n: int, current_lag: float) -> Reduction:
+    """The ``Reduction`` that sums each world's sweep moments on the device: world w follows
+    ``plans[group[w]]`` (padded to the longest, with samples outside any sweep)."""
+    rows = max(len(p.slot) for p in plans)
+    sweeps = max(p.sweep_joint.size for p in plans)
 
-    def __init__(
-        self,
-        signal: PlanSignal,
-        every: int,
-        first: int,
-        noise: np.ndarray,
-        seed: int,
-        keep: int,
-        segment: int | None = None,
-        current_lag: float = 0.0,
-    ):
-        """``segment``: the plan segment k these worlds run (``plan_signal.Segments``); their
-        noise then comes from ``SeedSequence([seed, NOISE_STREAM, world, k])``.
-        ``current_lag``: s, the simulator's (``MjxSimulator.current_lag``)."""
-        self.current_lag = float(current_lag)
-        rec = np.arange(0, len(signal.joint), every)  # plan steps recorded
-        self.t = (rec + 1) * CONTROL_PERIOD  # sample i is the state after plan step i
-        self.joint, self.direction = signal.joint[rec], signal.direction[rec]
-        sweep = signal.sweep[rec]
-        self.ends = np.flatnonzero(np.r_[sweep[1:] != sweep[:-1], True]) + 1  # segment ends
-        self.noise = np.asarray(noise, float)
-        tail = [] if segment is None else [segment]
-        self.gens = [
-            np.random.default_rng([seed, NOISE_STREAM, first + i, *tail]) for i in range(len(noise))
-        ]
-        self.keep = max(0, min(keep - first, len(noise)))
-        self.kept: list[tuple[np.ndarray, ...]] = []
-        self.buffer: list[tuple[np.ndarray, ...]] = []
-        self.start = 0  # recorded index of the buffer's first sample
-        self.parts: list[SweepMoments] = []
-        self.seconds = 0.0  # host time spent here
+    def padded(p: StreamPlan) -> tuple[np.ndarray, ...]:
+        extra = rows - len(p.slot)
+        pad = [np.full(extra, -1), *(np.zeros((extra, *a.shape[1:])) for a in p.rows()[1:])]
+        return tuple(
+            np.concatenate([a, b.astype(a.dtype)]) for a, b in zip(p.rows(), pad, strict=True)
+        )
 
-    def __call__(self, first: int, chunk: MjxRecording) -> None:
-        t0 = time.perf_counter()
-        current = np.array(chunk.current, float)
-        for i, g in enumerate(self.gens):
-            current[i] += self.noise[i] * g.standard_normal(current[i].shape)
-        arrays = (np.asarray(chunk.q, float), np.asarray(chunk.dq, float), current)
-        if self.keep:
-            self.kept.append(tuple(a[: self.keep] for a in arrays))
-        self.buffer.append(arrays)
-        received = first + current.shape[1]
-        done = len(self.parts)
-        while done < len(self.ends) and self.ends[done] <= received:
-            a = self.ends[done - 1] if done else 0
-            b = self.ends[done]
-            q, dq, cur = (np.concatenate(x, axis=1) for x in zip(*self.buffer, strict=True))
-            seg = slice(a - self.start, b - self.start)
-            self.parts.append(
-                sweep_moments_batch(
-                    self.t[a:b],
-                    q[:, seg],
-                    dq[:, seg],
-                    cur[:, seg],
-                    self.joint[a:b],
-                    self.direction[a:b],
-                    current_lag=self.current_lag,
-                )
-            )
-            rest = slice(b - self.start, None)
-            self.buffer, self.start = [(q[:, rest], dq[:, rest], cur[:, rest])], b
-            done += 1
-        self.seconds += time.perf_counter() - t0
-
-    def kept_arrays(self) -> tuple[np.ndarray, ...]:
-        """q, dq, current (M, R, n) of the kept worlds, every sample received."""
-        return tuple(np.concatenate(x, axis=1) for x in zip(*self.kept, strict=True))
-
-    def recordings(self, model: str) -> list[Recording]:
-        """The kept worlds' ``Recording`` (100 Hz with the default ``every``)."""
-        if not self.keep:
-            return []
-        q, dq, cur = self.kept_arrays()
-        return [
-            Recording(
-                self.t,
-                q[i],
-                dq[i],
-                cur[i],
-                self.joint,
-                self.direction,
-                model,
-                current_lag=self.current_lag,
-            )
-            for i in range(self.keep)
-        ]
+    xs = tuple(np.stack(a, axis=1) for a in zip(*map(padded, plans), strict=True))
+    step = functools.partial(stream_add, fraction=STEADY_FRACTION, current_lag=current_lag)
+    return Reduction(step, stream_init(sweeps, n), xs, ("sweep-moments", float(current_lag)))
 
 
 class Simulated(NamedTuple):
     """What the simulation stage returns: ``moments`` (stacked SweepMoments, leading axis
     N), ``recordings`` of the first M worlds, ``fault_step`` (N,) (-1: none), ``timing`` s
-    (wall, compilation, stepping without compilation, host time reducing moments: it overlaps
-    the stepping), ``world_steps`` simulated (settling included)."""
+    (wall, compilation, stepping without compilation, turning the device's sums into
+    moments), ``world_steps`` simulated (settling included)."""
 
     moments: SweepMoments
     recordings: list[Recording]
@@ -161,87 +100,100 @@ def simulate(
     ``world_batch`` worlds per run; see the module docstring for noise and streaming.
 
     ``offset``: the index in the study of the truth's world 0 (worlds that record another
-    plan come first): the world index of the noise streams, and of ``keep`` (the worlds
-    below it keep their recordings).
+    plan come first): the world index of the noise, and of ``keep`` (the worlds below it keep
+    their recordings).
 
     ``parallel``: run the plan's K sweeps side by side (``plan_segments``), K MJX worlds per
     true robot, each starting at rest where the sweep before it ends: K times the worlds for
     about 1/K of the steps, which fills an accelerator that a few thousand worlds leave idle.
     """
     n_worlds, steps = truth.worlds, len(signal.q_ref)
-    quiet = dataclasses.replace(truth, current_noise=np.zeros(n_worlds))
     start = start_pose(sim.robot)
-    moments, recordings, faults = [], [], []
-    keys = ("simulate", "simulate_compile", "simulate_stepping", "simulate_moments_host")
+    keys = ("simulate", "simulate_compile", "simulate_stepping", "simulate_moments")
     timing = dict.fromkeys(keys, 0.0)
     if parallel:
         return _simulate_parallel(
-            sim,
-            quiet,
-            truth.current_noise,
-            signal,
-            start,
-            seed,
-            every,
-            world_batch,
-            keep,
-            progress,
-            timing,
-            offset,
+            sim, truth, signal, start, seed, every, world_batch, keep, progress, timing, offset
         )
+    plan = signal_stream_plan(signal, every)
+    reduce = sweep_reduction([plan], sim.n, sim.current_lag)
+    kept = min(max(keep - offset, 0), world_batch, n_worlds)  # the same in every run
+    moments, recordings, faults = [], [], []
+    rec_steps = np.arange(0, steps, every)
     for first in range(0, n_worlds, world_batch):
-        rows = slice(first, min(first + world_batch, n_worlds))
-        noise = truth.current_noise[rows]
-        stream = SweepStream(
-            signal, every, offset + first, noise, seed, keep, current_lag=sim.current_lag
-        )
-        done = [0]
-        width = rows.stop - rows.start
-
-        def advance(k: int, _total: int, done=done, width=width) -> None:
-            if progress is not None:
-                progress((k - done[0]) * width)
-            done[0] = k
-
-        compiled = sim.compile_seconds
+        rows = np.arange(first, min(first + world_batch, n_worlds))
+        width = len(rows)
+        record = np.arange(min(kept, width))
+        rec = _run(sim, truth_rows(truth, rows), signal.q_ref, start, seed, every, progress,
+                   width, steps, steps, reduce, record, offset + rows, None, timing)  # fmt: skip
         t0 = time.perf_counter()
-        rec = sim.run(
-            truth_rows(quiet, rows),
-            signal.q_ref,
-            start,
-            seed=seed,
-            every=every,
-            progress=advance,
-            on_chunk=stream,
-            keep=False,
-        )
-        _add_run_timing(timing, sim, t0, compiled, stream.seconds)
-        if len(stream.parts) != len(stream.ends):
-            raise InputError("the simulation stopped before the plan's last sweep")
-        moments.append(concat_moments(stream.parts))
-        recordings += stream.recordings(sim.robot.name)
+        moments.append(streamed_moments(StreamSums(*rec.reduced), plan))
+        timing["simulate_moments"] += time.perf_counter() - t0
         faults.append(rec.fault_step)
-    stacked = stack_worlds(moments)
+        mine = int(np.count_nonzero(offset + rows < keep))
+        recordings += [
+            _recording(sim, signal, rec_steps, rec.q[i], rec.dq[i], rec.current[i])
+            for i in range(mine)
+        ]
     return Simulated(
-        stacked, recordings, np.concatenate(faults), timing, n_worlds * (steps + SETTLE_STEPS)
+        stack_worlds(moments),
+        recordings,
+        np.concatenate(faults),
+        timing,
+        n_worlds * (steps + SETTLE_STEPS),
     )
 
 
-def _add_run_timing(
-    timing: dict[str, float], sim: MjxSimulator, t0: float, compiled: float, host: float
-) -> None:
-    """Add one MJX run of ``simulate`` to ``timing`` (s): wall time since ``t0``, compilation
-    (``sim.compile_seconds`` was ``compiled`` before), stepping, host moment reduction."""
+def _run(sim, truth, q_ref, start, seed, every, progress, width, steps, length, reduce, record,
+         world_ids, group, timing):  # fmt: skip
+    """One MJX run of ``simulate``, its timing added to ``timing`` (s: wall time,
+    compilation, stepping) and its progress reported in plan steps of the worlds."""
+    done = [0]
+
+    def advance(k: int, _total: int) -> None:
+        if progress is not None:
+            now = int(k * width * steps / length)
+            progress(now - done[0])
+            done[0] = now
+
+    compiled = sim.compile_seconds
+    t0 = time.perf_counter()
+    rec = sim.run(
+        truth,
+        q_ref,
+        start,
+        seed=seed,
+        every=every,
+        progress=advance,
+        keep=len(record) > 0,
+        group=group,
+        reduce=reduce,
+        record=record,
+        world_ids=world_ids,
+    )
     timing["simulate"] += time.perf_counter() - t0
     timing["simulate_compile"] += sim.compile_seconds - compiled
     timing["simulate_stepping"] += sim.last_timing["settle"] + sim.last_timing["plan"]
-    timing["simulate_moments_host"] += host
+    return rec
+
+
+def _recording(sim, signal, rec_steps, q, dq, current) -> Recording:
+    """A kept world's ``Recording`` of ``signal``'s samples at ``rec_steps``."""
+    return Recording(
+        (rec_steps + 1) * CONTROL_PERIOD,
+        q,
+        dq,
+        current,
+        signal.joint[rec_steps],
+        signal.direction[rec_steps],
+        sim.robot.name,
+        current_lag=sim.current_lag,
+    )
 
 
 def _simulate_parallel(
     sim: MjxSimulator,
-    quiet: BatchTruth,
-    noise: np.ndarray,
+    truth: BatchTruth,
     signal: PlanSignal,
     start: np.ndarray,
     seed: int,
@@ -254,82 +206,49 @@ def _simulate_parallel(
 ) -> Simulated:
     """``simulate(parallel=True)``: world w of segment k is MJX world k * B + w of a run."""
     seg = plan_segments(signal, start, every)
-    n_worlds, steps, (length, n_seg, _) = quiet.worlds, len(signal.q_ref), seg.q_ref.shape
+    n_worlds, steps, (length, n_seg, _) = truth.worlds, len(signal.q_ref), seg.q_ref.shape
+    plans = [signal_stream_plan(s, every) for s in seg.signals]
+    reduce = sweep_reduction(plans, sim.n, sim.current_lag)
+    kept = min(max(keep - offset, 0), world_batch, n_worlds)
     moments, recordings, faults = [], [], []
     rec_steps = np.arange(0, steps, every)
     world_steps = 0
     for first in range(0, n_worlds, world_batch):
         rows = np.arange(first, min(first + world_batch, n_worlds))
-        width = len(rows)
-        streams = [
-            SweepStream(
-                seg.signals[k],
-                every,
-                offset + first,
-                noise[rows],
-                seed,
-                keep,
-                segment=k,
-                current_lag=sim.current_lag,
-            )
-            for k in range(n_seg)
-        ]
-        done = [0]
-
-        def advance(k: int, _total: int, done=done, width=width) -> None:
-            if progress is not None:  # in plan steps of the worlds, as the sequential run
-                now = int(k * width * steps / length)
-                progress(now - done[0])
-                done[0] = now
-
-        def route(first_sample: int, chunk: MjxRecording, streams=streams, width=width) -> None:
-            for k, stream in enumerate(streams):
-                part = slice(k * width, (k + 1) * width)
-                stream(
-                    first_sample,
-                    chunk._replace(q=chunk.q[part], dq=chunk.dq[part], current=chunk.current[part]),
-                )
-
-        compiled = sim.compile_seconds
-        t0 = time.perf_counter()
-        rec = sim.run(
-            truth_rows(quiet, np.tile(rows, n_seg)),
-            seg.q_ref,
-            np.repeat(seg.start, width, axis=0),
-            seed=seed,
-            every=every,
-            progress=advance,
-            on_chunk=route,
-            keep=False,
-            group=np.repeat(np.arange(n_seg), width),
-        )
-        _add_run_timing(timing, sim, t0, compiled, sum(st.seconds for st in streams))
+        width, nk = len(rows), min(kept, len(rows))
+        record = (np.arange(n_seg)[:, None] * width + np.arange(nk)).ravel()
+        ids = ((offset + rows)[None] * n_seg + np.arange(n_seg)[:, None]).ravel()
+        rec = _run(sim, truth_rows(truth, np.tile(rows, n_seg)), seg.q_ref,
+                   np.repeat(seg.start, width, axis=0), seed, every, progress, width, steps,
+                   length, reduce, record, ids, np.repeat(np.arange(n_seg), width),
+                   timing)  # fmt: skip
         world_steps += width * n_seg * (length + SETTLE_STEPS)
-        if any(len(st.parts) != len(st.ends) for st in streams):
-            raise InputError("the simulation stopped before the plan's last sweep")
-        moments.append(concat_moments([p for st in streams for p in st.parts]))
+        t0 = time.perf_counter()
+        sums = StreamSums(*rec.reduced)
+        moments.append(
+            concat_moments(
+                [
+                    streamed_moments(StreamSums(*(a[k * width : (k + 1) * width] for a in sums)), p)
+                    for k, p in enumerate(plans)
+                ]
+            )
+        )
+        timing["simulate_moments"] += time.perf_counter() - t0
         local = rec.fault_step.reshape(n_seg, width)
         at = np.where(local >= 0, local + seg.first[:, None], np.iinfo(np.int64).max)
         faults.append(np.where((local >= 0).any(axis=0), at.min(axis=0), -1))
-        if streams[0].keep:  # the kept worlds' samples of each segment, in plan order
+        mine = int(np.count_nonzero(offset + rows < keep))
+        if mine:  # the kept worlds' samples of each segment, in plan order
             parts = []
-            for k, st in enumerate(streams):
+            for k in range(n_seg):
                 idx = (
                     rec_steps[(rec_steps >= seg.begin[k]) & (rec_steps < seg.end[k])] - seg.first[k]
                 ) // every
-                parts.append(tuple(a[:, idx] for a in st.kept_arrays()))
+                parts.append(
+                    tuple(a[k * nk : (k + 1) * nk][:, idx] for a in (rec.q, rec.dq, rec.current))
+                )
             q, dq, cur = (np.concatenate(x, axis=1) for x in zip(*parts, strict=True))
             recordings += [
-                Recording(
-                    (rec_steps + 1) * CONTROL_PERIOD,
-                    q[i],
-                    dq[i],
-                    cur[i],
-                    signal.joint[rec_steps],
-                    signal.direction[rec_steps],
-                    sim.robot.name,
-                    current_lag=sim.current_lag,
-                )
-                for i in range(streams[0].keep)
+                _recording(sim, signal, rec_steps, q[i], dq[i], cur[i]) for i in range(mine)
             ]
     return Simulated(stack_worlds(moments), recordings, np.concatenate(faults), timing, world_steps)
