@@ -102,6 +102,8 @@ log = logging.getLogger(__name__)
 
 RECORDING = "recording.npz"
 TIMING = "timing.json"
+#: s, real time: the longest gap between two states before the watchdog stops a run.
+STALL_LIMIT = 0.02
 #: Cycles of timing stamps preallocated (10 min at 1 kHz, 19 MB): a longer run grows them.
 TIMER_CAPACITY = 600_000
 #: s, how long the end effector may stay beyond ``max_error`` of its target (``run_control``).
@@ -598,6 +600,7 @@ def run_control(
     max_error_time: float = MAX_ERROR_TIME,
     before_start: Callable[[float], None] | None = None,
     link: RunLink | None = None,
+    stall_limit: float | None = STALL_LIMIT,
 ) -> ControlResult:
     """Run guidance or tracking mode for ``duration`` s (see the module doc).
 
@@ -625,7 +628,7 @@ def run_control(
         watchdog: default: current limit = the arm's limits, saturation at the controller's
             limit for ``max_saturated_cycles`` cycles, the arm's ``stale_tolerance`` (repeated
             states of lost replies the arm tolerates; 0 for the simulator), loop-stall limit
-            20 ms in real time.
+            ``stall_limit`` (20 ms) in real time.
         base_velocity_compensation: give the controller the target's velocity relative to
             the moving arm base (from the odometry twist); False: the target's own velocity.
         on_cycle: called each cycle as ``on_cycle(k, state, command, target)`` (target: (3,)
@@ -640,6 +643,10 @@ def run_control(
             ``InputError``).
         link: a ``RunLink`` from outside the loop's thread: a stop request (ends the run,
             kind "stopped"), live gains, a monitor fed every ``monitor.every`` cycles.
+        stall_limit: s, real time only: the longest the loop may go without a new state
+            before the watchdog ends the run (a stalled loop leaves a real arm on its last
+            command); None: no limit (a lock-step simulator waits for the loop). Ignored with
+            ``watchdog``.
 
     Targets the arm alone must reach (guidance mode, or tracking without a base) that get
     farther from its base than its reach (``workspace.arm_reach``) are refused (InputError).
@@ -667,6 +674,7 @@ def run_control(
         max_error=max_error,
         max_error_time=max_error_time,
         before_start=before_start,
+        stall_limit=stall_limit,
     )
     link = RunLink() if link is None else link
     if link.monitor is not None:
@@ -757,6 +765,7 @@ def _set_up(
     max_error: float | None,
     max_error_time: float,
     before_start: Callable[[float], None] | None,
+    stall_limit: float | None,
 ) -> _Run:
     """The set-up of ``run_control`` (its arguments): check that the arm is healthy and
     still, resolve the frames and the trajectory, compile and check the first command, open
@@ -778,7 +787,7 @@ def _set_up(
         law.saturation,
         max_saturated_cycles=max_saturated_cycles,
         stale_cycles=arm.stale_tolerance,
-        max_gap=0.02 if realtime else None,
+        max_gap=stall_limit if realtime else None,
         unit=law.unit,
         max_error=max_error,
         max_error_cycles=max(int(round(max_error_time / CONTROL_PERIOD)), 1),

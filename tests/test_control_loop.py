@@ -742,6 +742,7 @@ GEN3_LITE = ["control", "--model", "gen3_lite"]
         ([*GEN3_LITE, "--push", "100,1,10,0,0", "--duration", "3"], "starts at 100 s, after"),
         ([*GEN3_LITE, "--push", "1,1,1e9,0,0"], "beyond 396 N, 10 times the weight of"),
         ([*GEN3_LITE, "--params", "SHORT"], "ratio must have 6 entries, one per joint"),
+        ([*GEN3_LITE, "--stiffness", "5000"], "stiffness 5000 N/m is outside the safe range"),
         (["control", "--robot", "kortex"], "needs Kinova's kortex_api"),
         (["calibrate", "--robot", "kortex", "--plan", "short"], "needs Kinova's kortex_api"),
     ],
