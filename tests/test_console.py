@@ -87,47 +87,30 @@ def console(tmp_path_factory):
     if CHROMIUM is None:
         pytest.skip("no Chromium: .ci/run installs the distribution's (apt-get install chromium)")
     sync_api = pytest.importorskip("playwright.sync_api", reason="pip install playwright")
-    from jaxcomp.console.link import ConsoleLink
     from jaxcomp.console.operator import Operator
     from jaxcomp.control import ImpedanceGains, make_impedance_controller
     from jaxcomp.control.loop import arm_model, arm_params
-    from jaxcomp.control.presets import gain_limits
     from jaxcomp.hardware import Simulator, TrueRobot
     from jaxcomp.robot import load_robot
-    from jaxcomp.robot_params import BASE_JOINTS
 
     mobile = load_robot("mobile_gen3_lite")
     arm = arm_model(mobile)
     truth = TrueRobot.draw(mobile, 0)
     sim = Simulator(mobile, truth, seed=0, initial_pose="home")
-    holder = {}
-    gains = ImpedanceGains.tracking()
+    controller = make_impedance_controller(
+        arm, arm_params(truth.params, arm), ImpedanceGains.tracking()
+    )
+    out = tmp_path_factory.mktemp("console")
+    operator = Operator(sim.arm, sim.base, sim, mobile, controller, "tracking", out)
     with ThreadPoolExecutor(1) as pool:  # the page's process starts while JAX compiles
-        started = pool.submit(
-            ConsoleLink,
-            mobile,
-            sim.arm.joint_names,
-            BASE_JOINTS,
-            handler=lambda name, args: holder["operator"].handle(name, args),
-            port=_free_port(),
-            controls="console",
-            gains={"stiffness": 400.0, "damping": 30.0, "friction": True},
-            limits=gain_limits(arm)._asdict(),
-        )
+        started = pool.submit(operator.serve, _free_port())
         play = sync_api.sync_playwright().start()
         browser = play.chromium.launch(
             executable_path=CHROMIUM,
             args=["--enable-unsafe-swiftshader", "--use-angle=swiftshader"],
         )
-        controller = make_impedance_controller(arm, arm_params(truth.params, arm), gains)
         controller.compile()
         link = started.result()
-    operator = Operator(
-        sim.arm, sim.base, sim, mobile, controller, "tracking", tmp_path_factory.mktemp("console")
-    )
-    holder["operator"] = operator
-    operator.link = link
-    link.on_stop = operator.stop.set
     thread = threading.Thread(target=operator.run, daemon=True)
     thread.start()
     page = browser.new_page(viewport={"width": 1100, "height": 760})

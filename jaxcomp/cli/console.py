@@ -107,12 +107,11 @@ def _console(
         kortex_params,
         open_robot,
     )
-    from jaxcomp.console.link import ConsoleLink
     from jaxcomp.console.operator import Operator
     from jaxcomp.control.impedance import make_impedance_controller
     from jaxcomp.control.loop import arm_model
     from jaxcomp.control.presets import impedance_gains
-    from jaxcomp.robot_params import BASE_JOINTS, RobotParams
+    from jaxcomp.robot_params import RobotParams
 
     params = RobotParams.load(params_file) if params_file is not None else None
     chosen = _chosen_joints(joints, params, params_file)
@@ -150,21 +149,8 @@ def _console(
         )
         if params_file is not None:
             operator.params_name = params_file
-        link = ConsoleLink(
-            opened.robot,
-            tuple(opened.arm.joint_names),
-            tuple(BASE_JOINTS) if opened.base is not None else (),
-            handler=operator.handle,
-            port=port,
-            host=host,
-            title=f"{opened.robot.name} ({'simulator' if opened.sim is not None else ip})",
-            controls="console",
-            gains=operator.gains,
-            limits=operator.limits,
-            on_lost=on_disconnect,
-            on_stop=operator.stop.set,
-        )
-        operator.link = link
+        title = f"{opened.robot.name} ({'simulator' if opened.sim is not None else ip})"
+        link = operator.serve(port, host, title, on_disconnect)
         click.echo(f"console: {link.url}  (Ctrl-C ends it)", err=True)
         if duration is not None:
             timer = threading.Timer(duration, operator.close)

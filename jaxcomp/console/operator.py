@@ -90,6 +90,34 @@ class Operator:
         self.last_result = None
         self.fitting = False
 
+    def serve(
+        self,
+        port: int = 8080,
+        host: str = "127.0.0.1",
+        title: str = "",
+        on_lost: str = "continue",
+    ):
+        """Start this operator's page (a ``link.ConsoleLink`` wired to ``handle``; the page
+        going away with ``on_lost`` "stop" stops the active job) and return it."""
+        from jaxcomp.console.link import ConsoleLink
+        from jaxcomp.robot_params import BASE_JOINTS
+
+        self.link = ConsoleLink(
+            self.robot,
+            tuple(self.arm.joint_names),
+            tuple(BASE_JOINTS) if self.base is not None else (),
+            handler=self.handle,
+            port=port,
+            host=host,
+            title=title or self.robot.name,
+            controls="console",
+            gains=self.gains,
+            limits=self.limits,
+            on_lost=on_lost,
+            on_stop=self.stop.set,
+        )
+        return self.link
+
     # ----------------------------------------------------------------- commands (link thread)
     def handle(self, name: str, args: dict) -> str | None:
         """Run the page's command ``name`` with ``args`` (validated here, the CLI's way);
@@ -146,30 +174,41 @@ class Operator:
         return f"{mode} mode, {args.get('trajectory') or 'static'}; {self._describe(live)}"
 
     def _calibrate(self, args: dict) -> str:
-        from jaxcomp.identify.named_plans import check_plan_name, named_plan
+        from jaxcomp.identify.named_plans import check_plan_name
 
         plan_name = str(args.get("plan") or "short")
         check_plan_name(plan_name)
-        if plan_name.endswith(".json") or Path(plan_name).is_file():
+        if plan_name not in ("short", "default"):
             raise InputError("the console calibrates with a named plan: short or default")
-        plan = named_plan(self.robot, plan_name)
         if self.job is not None or self.fitting:
             raise InputError(f"a {self.job or 'fit'} is active: stop it first")
+        # the plan is designed on the model (seconds) off the control thread, then queued
+        threading.Thread(target=self._plan, args=(plan_name,), daemon=True).start()
+        return f"designing the {plan_name} plan, then calibrating"
+
+    def _plan(self, plan_name: str) -> None:
+        from jaxcomp.identify.named_plans import named_plan
+
+        try:
+            plan = named_plan(self.robot, plan_name)
+        except JaxcompError as exc:
+            self.status(error=str(exc))
+            return
         self.jobs.put(("calibration", plan_name, plan))
-        return f"calibration ({plan_name}: {len(plan.sweeps)} sweeps, {plan.duration():.0f} s)"
 
     # ----------------------------------------------------------------- the control thread
     def status(self, **fields) -> None:
         if self.link is not None:
             self.link.status(**fields)
 
-    def _arm_status(self, state: str, detail: str = "", **extra) -> None:
-        modes = sorted({m.value for m in self.arm.modes})
+    def _arm_status(self, state: str, detail: str = "", modes: str = "", **extra) -> None:
+        """The page's status: ``state``, ``detail``, the arm's modes (``modes``: as they will
+        be, else as they are), faults, params, gains, and ``extra`` fields."""
         params = self.controller.params
         self.status(
             state=state,
             detail=detail,
-            arm_modes="/".join(modes),
+            arm_modes=modes or "/".join(sorted({m.value for m in self.arm.modes})),
             base_stopped=self.base is not None and state in ("holding", "stopped"),
             faults=list(self.arm.read().faults),
             ratio=[float(x) for x in params.ratio],
@@ -216,7 +255,6 @@ class Operator:
     def _hold(self) -> None:
         """Position mode at 1 kHz (paced), frames to the page, until a job or ``close``."""
         from jaxcomp.constants import CONTROL_PERIOD
-        from jaxcomp.control.timing import wait_until
         from jaxcomp.hardware import HardwareFault
 
         arm, feed = self.arm, self.link.feed if self.link is not None else None
@@ -239,8 +277,8 @@ class Operator:
             if feed is not None:
                 feed.state("idle", state, self._base_pose())
             deadline += period
-            if self.realtime:
-                wait_until(deadline)
+            if self.realtime:  # a holding arm needs no spin-accurate ticks: sleep only
+                time.sleep(max(deadline - time.perf_counter_ns(), 0) * 1e-9)
             deadline = max(deadline, time.perf_counter_ns() - 10 * period)
 
     def _settle(self, seconds: float = 2.0) -> None:
@@ -280,7 +318,7 @@ class Operator:
         if self.link is not None:
             link.monitor = self.link.feed
         self._settle()
-        self._arm_status("running", f"{mode} mode, {text}")
+        self._arm_status("running", f"{mode} mode, {text}", modes="current (impedance)")
         result = run_control(
             self.arm,
             self.base,

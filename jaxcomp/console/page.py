@@ -7,9 +7,12 @@ validates it as the command line does and replies; the reply (or its error, the 
 tracking, calibrating), the arm's modes and faults, the identified ratios and friction, the
 loop's missed deadlines and the frames the page was too slow for.
 
-Plots (the last ``WINDOW`` s, redrawn at 10 Hz): one joint's measured current against the
-model's prediction (their difference is the external torque), the external force and its band
-(world frame), the tracking error, and the histogram of the loop's periods.
+Plots (the last ``WINDOW`` s at ``POINTS_PER_S`` points a second, redrawn every ``DRAW_EVERY``
+frames: 5 Hz; each redraw costs the browser time per point, and a browser rendering in
+software, e.g. a phone's or a headless one, falls behind at 10 Hz with 300 points a plot): one
+joint's measured current against the model's prediction (their difference is the external
+torque), the external force and its band (world frame), the tracking error, and the histogram
+of the loop's periods.
 """
 
 from __future__ import annotations
@@ -18,10 +21,14 @@ from collections.abc import Callable
 
 import numpy as np
 
-from jaxcomp.console.feed import PHASE_NAMES, FrameLayout
+from jaxcomp.console.feed import PHASE_NAMES, RATE, FrameLayout
 
 #: s of history in the time plots.
 WINDOW = 10.0
+#: Points a second the time plots show (of the 30 frames a second).
+POINTS_PER_S = 10
+#: Frames between two redraws of the plots and the live line (5 Hz at 30 frames a second).
+DRAW_EVERY = 6
 #: Loop period histogram: bin edges, us.
 PERIOD_EDGES = np.concatenate([np.arange(0.0, 2050.0, 50.0), [np.inf]])
 _X = {"time": False}
@@ -30,9 +37,15 @@ _X = {"time": False}
 def _plot(plot, x: np.ndarray, *ys: np.ndarray) -> None:
     """New data for a uPlot ``plot``, its y range set here: uPlot takes NaN (a gap: nothing
     drawn) for a number and its own range then fails, so the range comes from the finite
-    values, rounded out to a step of 1, 2 or 5 times a power of ten (sent only on change)."""
+    values, rounded out to a step of 1, 2 or 5 times a power of ten. A new range rebuilds the
+    chart in the browser: it is sent only when the data leave the range or fill less than a
+    third of it."""
     finite = np.concatenate([y[np.isfinite(y)] for y in ys])
     lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    old = (plot.scales or {}).get("y", {}).get("range")
+    if old is not None and old[0] <= lo and hi <= old[1] and 3 * (hi - lo) >= old[1] - old[0]:
+        plot.data = (x, *ys)
+        return
     span = max(hi - lo, 1e-3, 0.05 * max(abs(lo), abs(hi)))
     step = 10.0 ** np.floor(np.log10(span / 4))
     step *= next(m for m in (1, 2, 5, 10) if span / (m * step) <= 5)
@@ -237,12 +250,13 @@ class Page:
             return
         self.last = frames[-1]
         self._frames += 1
-        if self._frames % 3 == 0:
+        if self._frames % DRAW_EVERY == 0:
             self._draw(dropped)
 
     def _window(self) -> tuple[np.ndarray, np.ndarray]:
         k = min(self._i, len(self._t))
-        order = (np.arange(self._i - k, self._i)) % len(self._t)
+        stride = max(int(round(RATE / POINTS_PER_S)), 1)
+        order = np.arange(self._i - 1, self._i - k - 1, -stride)[::-1] % len(self._t)
         return self._t[order], self._rows[order]
 
     def _draw(self, dropped: int) -> None:
@@ -258,7 +272,7 @@ class Page:
             rows[:, lay.slices["ee"]] - rows[:, lay.slices["target"]], axis=1
         )
         _plot(self.error_plot, t, err)
-        if self._frames % 15 == 0:  # 2 Hz
+        if self._frames % (2 * DRAW_EVERY) == 0:
             counts = self._hist[:-1].astype(float)
             _plot(self.period_plot, self.period_plot.data[0], np.log10(1.0 + counts))
         phase = PHASE_NAMES.get(float(last[1]), "?")
@@ -283,4 +297,4 @@ class Page:
         self.live.content = " · ".join(parts) + "  \nq (rad): " + " ".join(f"{x:+.3f}" for x in q)
 
 
-__all__ = ["PERIOD_EDGES", "WINDOW", "Page"]
+__all__ = ["DRAW_EVERY", "PERIOD_EDGES", "POINTS_PER_S", "WINDOW", "Page"]

@@ -165,7 +165,7 @@ class RobotScene:
             head_length=0.03, visible=False,
         )  # fmt: skip
         self.band = server.scene.add_box(
-            "/force_band", dimensions=(1.0, 1.0, 1.0), color=(250, 160, 20), opacity=0.25,
+            "/force_band", dimensions=(1.0, 1.0, 1.0), color=(250, 120, 0), wireframe=True,
             visible=False,
         )  # fmt: skip
         self._trail = server.scene.add_line_segments(
