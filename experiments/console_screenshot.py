@@ -21,12 +21,8 @@ import tempfile  # noqa: E402
 import threading  # noqa: E402
 import time  # noqa: E402
 
-from jaxcomp.console.operator import Operator  # noqa: E402
-from jaxcomp.control import ImpedanceGains, make_impedance_controller  # noqa: E402
-from jaxcomp.control.loop import arm_model, arm_params  # noqa: E402
+from jaxcomp.console.operator import simulated_operator  # noqa: E402
 from jaxcomp.control.timing import configure_jax_for_control, realtime_priority  # noqa: E402
-from jaxcomp.hardware import Simulator, TrueRobot  # noqa: E402
-from jaxcomp.robot import load_robot  # noqa: E402
 
 
 def main() -> None:
@@ -40,16 +36,10 @@ def main() -> None:
 
     configure_jax_for_control()
     push = tuple(float(x) for x in args.push.split(","))
-    mobile = load_robot("mobile_gen3_lite")
-    arm = arm_model(mobile)
-    truth = TrueRobot.draw(mobile, 0)
-    sim = Simulator(mobile, truth, seed=0, initial_pose="home")
-    controller = make_impedance_controller(
-        arm, arm_params(truth.params, arm), ImpedanceGains.tracking()
-    )
-    controller.compile()
     with tempfile.TemporaryDirectory() as tmp:
-        operator = Operator(sim.arm, sim.base, sim, mobile, controller, "tracking", tmp)
+        operator = simulated_operator(tmp)
+        operator.controller.compile()
+        sim = operator.sim
         link = operator.serve(8790, title="mobile_gen3_lite (simulator)")
 
         def control():

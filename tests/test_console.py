@@ -87,21 +87,10 @@ def console(tmp_path_factory):
     if CHROMIUM is None:
         pytest.skip("no Chromium: .ci/run installs the distribution's (apt-get install chromium)")
     sync_api = pytest.importorskip("playwright.sync_api", reason="pip install playwright")
-    from jaxcomp.console.operator import Operator
-    from jaxcomp.control import ImpedanceGains, make_impedance_controller
-    from jaxcomp.control.loop import arm_model, arm_params
-    from jaxcomp.hardware import Simulator, TrueRobot
-    from jaxcomp.robot import load_robot
+    from jaxcomp.console.operator import simulated_operator
 
-    mobile = load_robot("mobile_gen3_lite")
-    arm = arm_model(mobile)
-    truth = TrueRobot.draw(mobile, 0)
-    sim = Simulator(mobile, truth, seed=0, initial_pose="home")
-    controller = make_impedance_controller(
-        arm, arm_params(truth.params, arm), ImpedanceGains.tracking()
-    )
-    out = tmp_path_factory.mktemp("console")
-    operator = Operator(sim.arm, sim.base, sim, mobile, controller, "tracking", out)
+    operator = simulated_operator(tmp_path_factory.mktemp("console"))
+    sim = operator.sim
     with ThreadPoolExecutor(1) as pool:  # the page's process starts while JAX compiles
         started = pool.submit(operator.serve, _free_port())
         play = sync_api.sync_playwright().start()
@@ -109,7 +98,7 @@ def console(tmp_path_factory):
             executable_path=CHROMIUM,
             args=["--enable-unsafe-swiftshader", "--use-angle=swiftshader"],
         )
-        controller.compile()
+        operator.controller.compile()
         link = started.result()
     thread = threading.Thread(target=operator.run, daemon=True)
     thread.start()

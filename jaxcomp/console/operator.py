@@ -64,7 +64,7 @@ class Operator:
         from jaxcomp.control.impedance import live_gains
         from jaxcomp.control.loop import ArmMount, arm_model
         from jaxcomp.control.presets import gain_limits
-        from jaxcomp.control.run_link import RunLink, Tuning
+        from jaxcomp.control.run_link import Tuning
 
         self.arm, self.base, self.sim, self.robot = arm, base, sim, robot
         self.controller, self.preset, self.out = controller, preset, Path(out)
@@ -79,7 +79,6 @@ class Operator:
         }
         self.limits = gain_limits(self.arm_robot)._asdict()
         self.tuning = Tuning(live_gains(gains.stiffness, gains.damping, True))
-        self._RunLink = RunLink
         self.link = None  # the ConsoleLink, once attached
         self.jobs: queue.Queue = queue.Queue()
         self.actions: queue.Queue = queue.Queue()  # quick things for the control thread
@@ -311,10 +310,11 @@ class Operator:
 
     def _run(self, mode: str, spec, text: str) -> None:
         from jaxcomp.control.loop import STALL_LIMIT, run_control
+        from jaxcomp.control.run_link import RunLink
 
         self.job = "run"
         out = next_folder(self.out, "run")
-        link = self._RunLink(stop=self.stop, tuning=self.tuning)
+        link = RunLink(stop=self.stop, tuning=self.tuning)
         if self.link is not None:
             link.monitor = self.link.feed
         self._settle()
@@ -406,8 +406,31 @@ class Operator:
             self.fitting = False
 
 
+def simulated_operator(
+    out: str | Path, model: str = "mobile_gen3_lite", seed: int = 0, preset: str = "tracking"
+) -> Operator:
+    """An ``Operator`` of the simulated ``model`` (true robot drawn from ``seed``, its arm at
+    'home') whose controller knows the true params (demos, tests, benchmarks); the controller
+    is built, not compiled (``operator.controller.compile()``)."""
+    from jaxcomp.control.impedance import make_impedance_controller
+    from jaxcomp.control.loop import arm_model, arm_params
+    from jaxcomp.control.presets import impedance_gains
+    from jaxcomp.hardware import Simulator, TrueRobot
+    from jaxcomp.robot import load_robot
+
+    robot = load_robot(model)
+    arm = arm_model(robot)
+    truth = TrueRobot.draw(robot, seed)
+    sim = Simulator(robot, truth, seed=seed, initial_pose="home")
+    controller = make_impedance_controller(
+        arm, arm_params(truth.params, arm), impedance_gains(arm, preset)
+    )
+    base = sim.base if sim.has_base else None
+    return Operator(sim.arm, base, sim, robot, controller, preset, Path(out))
+
+
 class _Stopped(Exception):
     """The page stopped a calibration."""
 
 
-__all__ = ["MODES", "RUN_LIMIT", "Operator", "next_folder"]
+__all__ = ["MODES", "RUN_LIMIT", "Operator", "next_folder", "simulated_operator"]

@@ -107,9 +107,11 @@ def serve(conn, setup: dict) -> None:
 def main() -> None:
     """``python -m jaxcomp.console.server ADDRESS``: connect to the control process (key in
     ``$JAXCOMP_CONSOLE_KEY``), take the setup, serve."""
+    import signal
     import sys
     from multiprocessing.connection import Client
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is for the control process: it ends us
     key = bytes.fromhex(os.environ.pop("JAXCOMP_CONSOLE_KEY"))
     conn = Client(sys.argv[1], family="AF_UNIX", authkey=key)
     serve(conn, conn.recv())
