@@ -522,7 +522,9 @@ def attach_console(opened: Opened, controller, link, port: int, host: str, on_lo
         if name == "stop":
             link.stop.set()
             return "stopping: arm in position mode, base stopped"
-        if name == "gains" and link.tuning is not None:
+        if name == "gains" and link.tuning is None:
+            raise InputError("the velocity controller has no impedance gains to set")
+        if name == "gains":
             friction = args.get("friction", True)
             values = checked_live_gains(
                 arm_robot, controller.gains, args.get("stiffness"), args.get("damping"), friction
@@ -543,7 +545,7 @@ def attach_console(opened: Opened, controller, link, port: int, host: str, on_lo
         port=port,
         host=host,
         title=f"jaxcomp control: {opened.robot.name}",
-        controls="control" if live is not None else "calibrate",
+        controls="control",
         gains=None
         if live is None
         else {"stiffness": live[0], "damping": live[3], "friction": bool(live[6])},
