@@ -15,7 +15,9 @@ One ``.npz``, SI units, n = the robot's current-controlled joints:
   computed one 1 kHz cycle before the pose they report, 1 ms.
 
 Any further array whose first axis has length N (the controller adds ``target``, ``ee``,
-``base``, ``command``) is kept in ``Recording.extra``. Loading validates everything and raises
+``base``, ``command``, and the impedance controller its external force estimate
+``current_model``, ``wrench``, ``wrench_band``: ``jaxcomp.control.loop``) is kept in
+``Recording.extra``. Loading validates everything and raises
 one ``InputError`` naming the field; nothing is silently dropped.
 
 ``RecordingWriter`` writes a recording incrementally: samples go to numbered part files in
