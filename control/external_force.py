@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxcomp.control.linalg import damped_pinv
-from jaxcomp.current import blend
+from jaxcomp.current import blend, friction_current
 
 #: m^2: damping of (J J^T + eps I)^-1 in the force map (J of a position, m/rad): keeps the map
 #: finite at a singular pose, negligible against J J^T of an arm reaching tens of cm.
@@ -56,8 +56,10 @@ def model_current(
     xp: ModuleType = jnp,
 ) -> jax.Array:
     """(n,) A: c_model = r g(q) + a l sign(dq), a = min(|dq| / t, 1); g(q) N m (n,), dq rad/s,
-    ratio A/(N m), friction l A, threshold t rad/s."""
-    return ratio * gravity_torque + blend(dq, threshold, xp) * friction * xp.sign(dq)
+    ratio A/(N m), friction l A, threshold t rad/s. Eq. (16) (``current.friction_current``)
+    with no at-rest direction: a joint at rest holds with static friction, whatever its sign."""
+    no_rest_sign = xp.zeros_like(dq)
+    return friction_current(gravity_torque, no_rest_sign, dq, ratio, friction, threshold, 0.0, xp)
 
 
 def external_torque(current: jax.Array, current_model: jax.Array, ratio: jax.Array) -> jax.Array:
