@@ -56,7 +56,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Iterable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property, partial
 from typing import NamedTuple
@@ -917,17 +917,22 @@ def fit_each(
     failed: list[int] = []
     model: FitModel | None = None
     name = None  # the recordings' model
+    robots: dict[tuple, Robot] = {}  # each recording's robot, by its model and joints
+    buffers: dict[tuple[int, int], PackBuffer] = {}  # a CPU's, by batch parity and group
     bar = tqdm(desc="fitting", unit="rec", disable=not progress)
 
-    def send(recs: list[Recording]) -> tuple[Packed, int]:
-        # on a CPU the device array may alias the host buffer: no reuse there
-        if accelerated and not hasattr(local, "buffer"):
-            local.buffer = PackBuffer()
-        packed, length = pack(recs, local.buffer if accelerated else None)
+    def send(item: tuple[tuple[int, int], list[Recording]]) -> tuple[Packed, int]:
+        which, recs = item
+        if accelerated:  # copied to the device: each thread packs into its own buffer again
+            buffer = local.__dict__.setdefault("buffer", PackBuffer())
+        else:  # the device array aliases the buffer: packed into again two batches later, once
+            # the batch that used it is fitted (fresh memory costs a page fault per 4 kB)
+            buffer = buffers.setdefault(which, PackBuffer())
+        packed, length = pack(recs, buffer)
         return jax.block_until_ready(jax.device_put(packed)), length
 
-    def finish(chunk: list[Recording], result, start: float) -> None:
-        sols, coef, joint, count = jax.tree.map(np.asarray, result)
+    def finish(chunk: list[Recording], result: Future, start: float) -> None:
+        sols, coef, joint, count = jax.tree.map(np.asarray, result.result())
         joint = np.where(count > 0, joint, -1)
         seconds = (time.perf_counter() - start) / len(chunk)
         for i, rec in enumerate(chunk):
@@ -939,21 +944,26 @@ def fit_each(
         bar.update(len(chunk))
 
     pending, seen = None, 0
-    with ThreadPoolExecutor(workers) as pool:
-        for chunk in _chunks(recordings, batch):
+    # the device thread loads the kept program and starts each batch's fit (asynchronous)
+    # while this one reads (``recordings`` may be a generator), checks and packs the next
+    with ThreadPoolExecutor(workers) as pool, ThreadPoolExecutor(1) as device:
+        for k, chunk in enumerate(_chunks(recordings, batch)):
             if model is None:
                 name = chunk[0].model
                 model = fit_model(name, com_prior)
             if any(r.model != name for r in chunk):
                 raise InputError("fit_each needs recordings of one robot model")
             for i, rec in enumerate(chunk):
-                if problems := recording_problems([rec]):
+                if (rec.model, rec.joints) not in robots:
+                    robots[rec.model, rec.joints] = rec.robot()
+                if problems := recording_problems([rec], robots[rec.model, rec.joints]):
                     raise InputError(f"recording {seen + i}: {'; '.join(problems)}")
             seen += len(chunk)
             start = time.perf_counter()
-            groups = [chunk[i : i + group] for i in range(0, len(chunk), group)]
+            groups = [((k % 2, i), chunk[i : i + group]) for i in range(0, len(chunk), group)]
             packed, length = _join(list(pool.map(send, groups)), batch)
-            result = traced.call(  # async: the device runs it while the host finishes the last
+            result = device.submit(
+                traced.call,
                 "fit_packed",
                 repr((model._identity, length, not accelerated)),
                 partial(_fit_packed, model, length=length, sequential=not accelerated),

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import json
 import shutil
-from collections.abc import Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -179,20 +179,24 @@ def _degrees_hint(name: str, arr: np.ndarray, limit: float, unit: str) -> None:
 
 
 def validate(
-    data: Mapping[str, Any], source: str = "recording", require_sweep: bool = True
+    data: Mapping[str, Any],
+    source: str = "recording",
+    require_sweep: bool = True,
+    robots: dict[tuple, Robot] | None = None,
 ) -> Recording:
     """A ``Recording`` from a mapping of fields (e.g. an opened ``.npz``), fully checked.
 
     ``require_sweep``: refuse a recording without any swept sample (what identification
-    needs); a controller's log has none.
+    needs); a controller's log has none. ``robots``: the robots of recordings checked before,
+    by model and joints, kept and reused (``load_recordings``).
     """
     try:
-        return _validate(data, require_sweep)
+        return _validate(data, require_sweep, {} if robots is None else robots)
     except JaxcompError as exc:
         raise type(exc)(f"{source}: {exc}") from None
 
 
-def _validate(data: Mapping[str, Any], require_sweep: bool) -> Recording:
+def _validate(data: Mapping[str, Any], require_sweep: bool, robots: dict) -> Recording:
     if "model" not in data:
         raise InputError("recording field 'model' is missing")
     model = np.asarray(data["model"])
@@ -202,11 +206,13 @@ def _validate(data: Mapping[str, Any], require_sweep: bool) -> Recording:
         raise InputError("recording field 'model' must be a non-empty string")
     model = str(model)
     joints = _joint_names(data)
-    try:
-        robot = load_robot(model, joints=joints)
-    except ModelError as exc:
-        fields = "field 'model'" if joints is None else "field 'model' (with 'joints')"
-        raise InputError(f"recording {fields}: {exc}") from None
+    if (model, joints) not in robots:
+        try:
+            robots[model, joints] = load_robot(model, joints=joints)
+        except ModelError as exc:
+            fields = "field 'model'" if joints is None else "field 'model' (with 'joints')"
+            raise InputError(f"recording {fields}: {exc}") from None
+    robot = robots[model, joints]
     n = len(arm_joint_indices(robot))
     t = _numeric(data, "t", (None,))
     N = t.shape[0]
@@ -309,10 +315,21 @@ def _joint_names(data: Mapping[str, Any]) -> tuple[str, ...] | None:
     return tuple(str(x) for x in names)
 
 
-def load_recording(path: str | Path, require_sweep: bool = True) -> Recording:
+def load_recordings(paths: Iterable[str | Path], require_sweep: bool = True) -> Iterator[Recording]:
+    """``load_recording`` of each path in turn, as the caller asks for them; recordings of one
+    model (and joints) share one robot, looked up once."""
+    robots: dict[tuple, Robot] = {}
+    for path in paths:
+        yield load_recording(path, require_sweep, robots)
+
+
+def load_recording(
+    path: str | Path, require_sweep: bool = True, robots: dict[tuple, Robot] | None = None
+) -> Recording:
     """Read and validate a recording ``.npz``; ``InputError`` naming the problem otherwise.
 
-    ``require_sweep=False`` also accepts recordings without sweeps (controller logs)."""
+    ``require_sweep=False`` also accepts recordings without sweeps (controller logs).
+    ``robots``: see ``validate``."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"recording not found: {path}")
@@ -323,7 +340,7 @@ def load_recording(path: str | Path, require_sweep: bool = True) -> Recording:
         raise InputError(f"{path}: not a readable .npz recording ({exc})") from None
     except Exception as exc:  # zipfile.BadZipFile and friends from a truncated file
         raise InputError(f"{path}: not a readable .npz recording ({exc})") from None
-    return validate(data, str(path), require_sweep)
+    return validate(data, str(path), require_sweep, robots)
 
 
 # --------------------------------------------------------------------- incremental writing
