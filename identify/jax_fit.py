@@ -55,6 +55,7 @@ import dataclasses
 import os
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -734,7 +735,7 @@ CURE = (
 
 
 def _params(
-    model: FitModel, rec: Recording, sol: Solution, phase, phase_std, seconds: float
+    model: FitModel, name: str, sol: Solution, phase, phase_std, seconds: float
 ) -> RobotParams:
     sol = jax.tree.map(np.asarray, sol)
     if not bool(sol.converged) or not np.all(np.isfinite(sol.ratio)):
@@ -749,7 +750,7 @@ def _params(
     names = model.parameter_names()
     joints = arm_joint_names(model.robot)
     return RobotParams(
-        model=rec.model,
+        model=name,
         ratio=sol.ratio,
         friction=np.abs(sol.friction),
         com_offset={link: com[i] for i, link in enumerate(model.links)},
@@ -844,13 +845,14 @@ def fit(
         st = st + other[0]
     sol = jax.block_until_ready(solve(_key(model), st, max_iter))
     _, coef, m = prepared[0]
-    return _result(model, recs[0], sol, coef, m.joint, time.perf_counter() - start)
+    return _result(model, recs[0].model, sol, coef, m.joint, time.perf_counter() - start)
 
 
-def _result(model, rec, sol, coef, joint, seconds) -> RobotParams:
+def _result(model, name, sol, coef, joint, seconds) -> RobotParams:
+    """The ``RobotParams`` of a solution, for recordings of the robot model ``name``."""
     cov = np.asarray(sol.cov)[_LIN * model.n :, _LIN * model.n :]
     phase, phase_std = phase_shift(model, coef, joint, np.asarray(sol.com), cov)
-    return _params(model, rec, sol, phase, phase_std, seconds)
+    return _params(model, name, sol, phase, phase_std, seconds)
 
 
 @partial(jax.jit, static_argnums=(0, 2, 3))
@@ -931,21 +933,22 @@ def fit_each(
         packed, length = pack(recs, buffer)
         return jax.block_until_ready(jax.device_put(packed)), length
 
-    def finish(chunk: list[Recording], result: Future, start: float) -> None:
+    def finish(names: list[str], result: Future, start: float) -> None:
         sols, coef, joint, count = jax.tree.map(np.asarray, result.result())
         joint = np.where(count > 0, joint, -1)
-        seconds = (time.perf_counter() - start) / len(chunk)
-        for i, rec in enumerate(chunk):
+        seconds = (time.perf_counter() - start) / len(names)
+        for i, recorded in enumerate(names):
             sol = jax.tree.map(lambda a, i=i: a[i], sols)
             try:
-                out.append(_result(model, rec, sol, coef[i], joint[i], seconds))
+                out.append(_result(model, recorded, sol, coef[i], joint[i], seconds))
             except FitError:
                 failed.append(len(out) + len(failed))
-        bar.update(len(chunk))
+        bar.update(len(names))
 
-    pending, seen = None, 0
+    pending: deque = deque()  # (names, result, start) of the batches not finished yet
+    seen = 0
     # the device thread loads the kept program and starts each batch's fit (asynchronous)
-    # while this one reads (``recordings`` may be a generator), checks and packs the next
+    # while this one reads (``recordings`` may be a generator), checks and packs the next ones
     with ThreadPoolExecutor(workers) as pool, ThreadPoolExecutor(1) as device:
         for k, chunk in enumerate(_chunks(recordings, batch)):
             if model is None:
@@ -959,6 +962,8 @@ def fit_each(
                 if problems := recording_problems([rec], robots[rec.model, rec.joints]):
                     raise InputError(f"recording {seen + i}: {'; '.join(problems)}")
             seen += len(chunk)
+            while len(pending) > 1 or (pending and pending[0][1].done()):
+                finish(*pending.popleft())  # the batch two before: its pack buffer is free
             start = time.perf_counter()
             groups = [((k % 2, i), chunk[i : i + group]) for i in range(0, len(chunk), group)]
             packed, length = _join(list(pool.map(send, groups)), batch)
@@ -970,11 +975,10 @@ def fit_each(
                 (packed,),
                 (Packed, Solution),
             )
-            if pending is not None:
-                finish(*pending)
-            pending = (chunk, result, start)
-        if pending is not None:
-            finish(*pending)
+            pending.append(([r.model for r in chunk], result, start))
+            del chunk, groups  # the samples are packed: the recordings can go
+        while pending:
+            finish(*pending.popleft())
     bar.close()
     if model is None:
         raise InputError("no recording to fit")

@@ -155,8 +155,8 @@ def _numeric(data: Mapping, name: str, shape: tuple, kind: str = "float") -> np.
         if arr.dtype.kind == "f":
             if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
                 raise InputError(f"recording field {name!r} must hold integers")
-        return arr.astype(np.int64)
-    arr = arr.astype(np.float64)
+        return arr.astype(np.int64, copy=False)
+    arr = arr.astype(np.float64, copy=False)
     bad = ~np.isfinite(arr)
     if bad.any():
         if arr.ndim == 0:
@@ -170,7 +170,7 @@ def _numeric(data: Mapping, name: str, shape: tuple, kind: str = "float") -> np.
 
 
 def _degrees_hint(name: str, arr: np.ndarray, limit: float, unit: str) -> None:
-    peak = float(np.abs(arr).max()) if arr.size else 0.0
+    peak = max(float(arr.max()), -float(arr.min())) if arr.size else 0.0
     if peak > limit:
         raise InputError(
             f"recording field {name!r} reaches {peak:.4g}, beyond {limit:.3g} {unit}: it looks "
@@ -184,7 +184,8 @@ def validate(
     require_sweep: bool = True,
     robots: dict[tuple, Robot] | None = None,
 ) -> Recording:
-    """A ``Recording`` from a mapping of fields (e.g. an opened ``.npz``), fully checked.
+    """A ``Recording`` from a mapping of fields (e.g. an opened ``.npz``), fully checked; an
+    array already of its field's dtype (float64, int64) is kept, not copied.
 
     ``require_sweep``: refuse a recording without any swept sample (what identification
     needs); a controller's log has none. ``robots``: the robots of recordings checked before,
@@ -227,13 +228,15 @@ def _validate(data: Mapping[str, Any], require_sweep: bool, robots: dict) -> Rec
         i = int(np.flatnonzero(np.diff(t) <= 0)[0])
         raise InputError(f"recording field 't' must increase; it does not at index {i + 1}")
     hinge = np.asarray(robot.tree.is_hinge)[arm_joint_indices(robot)]
-    _degrees_hint("q", q[:, hinge], _MAX_ANGLE, "rad")
-    steps = np.diff(q[:, hinge], axis=0)
-    moved = np.abs(steps).sum()
+    qh, dqh = (q, dq) if hinge.all() else (q[:, hinge], dq[:, hinge])  # no copy for an arm
+    _degrees_hint("q", qh, _MAX_ANGLE, "rad")
+    steps = np.abs(np.diff(qh, axis=0))  # in place from here: these are the large arrays
+    moved = steps.sum()
     if moved > 0:
         # dq in deg/s shows as |dq| ~57x the finite-difference velocity of q
-        fd = np.abs(steps / np.diff(t)[:, None]).sum()
-        ratio = np.abs(0.5 * (dq[1:, hinge] + dq[:-1, hinge])).sum() / max(fd, 1e-300)
+        fd = np.divide(steps, np.diff(t)[:, None], out=steps).sum()
+        mean = np.add(dqh[1:], dqh[:-1])
+        ratio = 0.5 * np.abs(mean, out=mean).sum() / max(fd, 1e-300)
         if 20 < ratio < 200:
             raise InputError(
                 f"recording field 'dq' is {ratio:.0f}x the rate of change of q: it looks like "
