@@ -60,6 +60,7 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property, partial
+from itertools import chain
 from typing import NamedTuple
 
 import jax
@@ -945,15 +946,37 @@ def fit_each(
                 failed.append(len(out) + len(failed))
         bar.update(len(names))
 
+    def program(packed, length: int) -> Callable:
+        return traced.program(
+            "fit_packed",
+            repr((model._identity, length, not accelerated)),
+            partial(_fit_packed, model, length=length, sequential=not accelerated),
+            (packed,),
+            (Packed, Solution),
+        )
+
+    def load(rec: Recording) -> None:  # the program for a batch of recordings like ``rec``
+        packed, length = pack([rec])
+        like = jax.tree.map(lambda a: jax.ShapeDtypeStruct((batch, *a.shape[1:]), a.dtype), packed)
+        program(like, length)
+
+    def run(packed, length: int):  # the batch's results, asynchronously
+        return program(packed, length)(packed)
+
     pending: deque = deque()  # (names, result, start) of the batches not finished yet
     seen = 0
+    stream = iter(recordings)
+    first = next(stream, None)
     # the device thread loads the kept program and starts each batch's fit (asynchronous)
     # while this one reads (``recordings`` may be a generator), checks and packs the next ones
     with ThreadPoolExecutor(workers) as pool, ThreadPoolExecutor(1) as device:
-        for k, chunk in enumerate(_chunks(recordings, batch)):
-            if model is None:
-                name = chunk[0].model
-                model = fit_model(name, com_prior)
+        if first is not None:
+            name = first.model
+            model = fit_model(name, com_prior)
+            device.submit(load, first)  # while the rest of the first batch is read
+            stream = chain([first], stream)
+            del first
+        for k, chunk in enumerate(_chunks(stream, batch)):
             if any(r.model != name for r in chunk):
                 raise InputError("fit_each needs recordings of one robot model")
             for i, rec in enumerate(chunk):
@@ -967,14 +990,7 @@ def fit_each(
             start = time.perf_counter()
             groups = [((k % 2, i), chunk[i : i + group]) for i in range(0, len(chunk), group)]
             packed, length = _join(list(pool.map(send, groups)), batch)
-            result = device.submit(
-                traced.call,
-                "fit_packed",
-                repr((model._identity, length, not accelerated)),
-                partial(_fit_packed, model, length=length, sequential=not accelerated),
-                (packed,),
-                (Packed, Solution),
-            )
+            result = device.submit(run, packed, length)
             pending.append(([r.model for r in chunk], result, start))
             del chunk, groups  # the samples are packed: the recordings can go
         while pending:
