@@ -52,6 +52,7 @@ robot's compiled model (not its name or file), so an edited model never reuses s
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 import threading
 import time
@@ -60,7 +61,6 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property, partial
-from itertools import chain
 from typing import NamedTuple
 
 import jax
@@ -957,6 +957,9 @@ def fit_each(
 
     def load(rec: Recording) -> None:  # the program for a batch of recordings like ``rec``
         packed, length = pack([rec])
+        if not accelerated:  # and the pack buffers' memory, mapped ahead of the first packs
+            for which in itertools.product((0, 1), range(-(-batch // group))):
+                buffers.setdefault(which, PackBuffer()).take(group, *packed.samples.shape[1:], True)
         like = jax.tree.map(lambda a: jax.ShapeDtypeStruct((batch, *a.shape[1:]), a.dtype), packed)
         program(like, length)
 
@@ -974,7 +977,7 @@ def fit_each(
             name = first.model
             model = fit_model(name, com_prior)
             device.submit(load, first)  # while the rest of the first batch is read
-            stream = chain([first], stream)
+            stream = itertools.chain([first], stream)
             del first
         for k, chunk in enumerate(_chunks(stream, batch)):
             if any(r.model != name for r in chunk):

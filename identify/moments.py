@@ -25,6 +25,7 @@ The median speed of a pass takes every ``MEDIAN_STRIDE``-th sample.
 from __future__ import annotations
 
 import mmap
+import threading
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -299,19 +300,25 @@ def _fresh_zeros(shape: tuple[int, ...]) -> np.ndarray:
 
 
 class PackBuffer:
-    """A host buffer that ``pack`` reuses from call to call (one per thread): writing into
+    """A host buffer that ``pack`` reuses from call to call (one pack at a time): writing into
     memory already mapped is several times faster than into fresh pages. Aligned for XLA: on a
     CPU the device array of a pack aliases it."""
 
     def __init__(self) -> None:
         self._samples = np.zeros((0, 0, 0))
+        self._lock = threading.Lock()
 
-    def take(self, k: int, rows: int, N: int) -> np.ndarray:
+    def take(self, k: int, rows: int, N: int, touch: bool = False) -> np.ndarray:
         """A view (k, rows, N) with arbitrary finite contents (of the array from before when
-        it is large enough)."""
-        if any(a < b for a, b in zip(self._samples.shape, (k, rows, N), strict=True)):
-            self._samples = _fresh_zeros((k, rows, N))
-        return self._samples[:k, :rows, :N]
+        it is large enough). ``touch``: map fresh memory now (another thread may, ahead of the
+        pack)."""
+        with self._lock:
+            if any(a < b for a, b in zip(self._samples.shape, (k, rows, N), strict=True)):
+                samples = _fresh_zeros((k, rows, N))
+                if touch:
+                    samples.fill(0.0)
+                self._samples = samples
+            return self._samples[:k, :rows, :N]
 
 
 def _meta(lays: Sequence[Layout], S: int) -> dict[str, np.ndarray]:

@@ -230,8 +230,8 @@ def _validate(data: Mapping[str, Any], require_sweep: bool, robots: dict) -> Rec
     hinge = np.asarray(robot.tree.is_hinge)[arm_joint_indices(robot)]
     qh, dqh = (q, dq) if hinge.all() else (q[:, hinge], dq[:, hinge])  # no copy for an arm
     _degrees_hint("q", qh, _MAX_ANGLE, "rad")
-    steps = np.abs(np.diff(qh, axis=0))  # in place from here: these are the large arrays
-    moved = steps.sum()
+    steps = np.diff(qh, axis=0)  # in place from here: these are the large arrays
+    moved = np.abs(steps, out=steps).sum()
     if moved > 0:
         # dq in deg/s shows as |dq| ~57x the finite-difference velocity of q
         fd = np.divide(steps, np.diff(t)[:, None], out=steps).sum()
