@@ -904,12 +904,16 @@ def fit_each(
     """Fit every recording on its own, ``batch`` at a time in one vmapped computation on the
     default backend (a GPU when present): moments, statistics and fit of a batch in one call.
 
+    The host reads (``recordings`` may be a generator that loads them), checks and packs a
+    batch while the device fits the two before; the device's program is loaded (or traced and
+    compiled) for a batch like the first recording while the rest of the first batch is read,
+    and a recording is let go once packed.
+
     ``batch``: recordings per call (default 256 on an accelerator, 8 on a CPU). ``workers``:
     host threads that pack the recordings (``_GROUP`` to a transfer) and send them to the
-    device while the device fits the batch before (default: up to 8 on an accelerator, where
-    more only contend for host memory bandwidth; 1 on a CPU). ``com_prior``: m, as ``fit``'s.
-    Raises
-    ``FitError`` naming the recordings whose fit did not converge (no result then).
+    device (default: up to 8 on an accelerator, where more only contend for host memory
+    bandwidth; 1 on a CPU). ``com_prior``: m, as ``fit``'s. Raises ``FitError`` naming the
+    recordings whose fit did not converge (no result then).
     """
     accelerated = not on_cpu()
     batch = int(batch or (256 if accelerated else 8))

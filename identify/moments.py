@@ -425,7 +425,8 @@ def reduce_packed(p: Packed, L: int, fraction: float, trim: float) -> SweepMomen
     n = rows - _ROWS
     S = p.joint.shape[0]
     x = p.samples.reshape(rows, N // BLOCK, BLOCK)
-    t, rate, current, q = x[0], x[1], x[2], x[_ROWS:]  # (nb, BLOCK) each, q (n, nb, BLOCK)
+    # (nb, BLOCK) each; the angles row by row (a slice of them all would be copied)
+    t, rate, current, q = x[0], x[1], x[2], [x[_ROWS + i] for i in range(n)]
     first, length, sign = (a.reshape(-1) for a in (p.start, p.length, p.direction))  # (2 S,)
     at = jnp.arange(N // BLOCK) * BLOCK
     member = (at[:, None] >= first) & (at[:, None] < first + length)  # (nb, 2 S): its pass
@@ -457,7 +458,7 @@ def reduce_packed(p: Packed, L: int, fraction: float, trim: float) -> SweepMomen
     v = sign * mean(speed, steady)  # (2 S,) rad/s
     w = steady.astype(t.dtype)
     count = jnp.round(total(1.0, steady)).astype(int).reshape(S, 2).sum(axis=1)
-    held = (jnp.einsum("jnb,nb->jn", q, w) @ of).reshape(n, S, 2).sum(axis=2)
+    held = (jnp.stack([jnp.sum(qi * w, axis=1) for qi in q]) @ of).reshape(n, S, 2).sum(axis=2)
     hold = held.T / jnp.maximum(count, 1)[:, None]  # (S, n)
     sweep = k // 2
     joint = p.joint[sweep]  # (nb,) the block's swept joint
@@ -467,16 +468,22 @@ def reduce_packed(p: Packed, L: int, fraction: float, trim: float) -> SweepMomen
         def part(x: jax.Array, axis: int = 0) -> jax.Array:
             return jax.lax.dynamic_slice_in_dim(x, first, size, axis)
 
-        qg, wg, cg, jg, hg = part(q, 1), part(w), part(current), part(joint), part(at_hold)
-        theta = jnp.take_along_axis(qg, jg[None, :, None], axis=0)[0]
+        qg, wg, cg, jg, hg = (
+            [part(qi) for qi in q],
+            part(w),
+            part(current),
+            part(joint),
+            part(at_hold),
+        )
+        theta = sum(qi * (jg == i)[:, None] for i, qi in enumerate(qg))  # the swept angle
         trig = _in_memory(jnp.stack([jnp.sin(theta), jnp.cos(theta)]))
         # u w = [1, dh] w, dh = q - hold and 0 for the swept joint; z = [sin u, cos u, u]
-        uw = [wg] + [(qg[i] - hg[:, i, None]) * ((jg != i)[:, None] * wg) for i in range(n)]
+        uw = [wg] + [(qi - hg[:, i, None]) * ((jg != i)[:, None] * wg) for i, qi in enumerate(qg)]
         # psi = E [z, current] with E constant over a pass (d and v are multiples of z's
         # "one"): the moments are E G E^T with G the moments of [z, current] (steady samples)
         rows = [trig[0] * r for r in uw] + [trig[1] * r for r in uw] + uw + [cg * wg]
-        phi = jnp.stack(rows)
-        return jnp.einsum("anb,cnb->nac", phi, phi)
+        phi = jnp.stack(rows, axis=1)  # (blocks, Z + 1, BLOCK): a matrix product per block
+        return jnp.einsum("nab,ncb->nac", phi, phi)
 
     # a group of blocks at a time: the features of every sample never take memory at once
     nb = N // BLOCK
@@ -504,7 +511,8 @@ def reduce_packed(p: Packed, L: int, fraction: float, trim: float) -> SweepMomen
 
 def reduce_batch(p: Packed, L: int, fraction: float, trim: float, sequential: bool) -> SweepMoments:
     """``reduce_packed`` over the leading axis of ``p``: vmapped, or one recording after
-    another with ``sequential`` (twice as fast on a CPU, where batched gathers are slow)."""
+    another with ``sequential`` (on a CPU: the temporaries of one recording rather than of the
+    batch, whose fresh memory cost as much system time as the reduction took)."""
 
     def one(x: Packed) -> SweepMoments:
         return reduce_packed(x, L, fraction, trim)
@@ -525,7 +533,7 @@ def on_cpu() -> bool:
 def packed_moments(
     packed: Packed, length: int, fraction: float = STEADY_FRACTION, trim: float = STEADY_TRIM
 ) -> SweepMoments:
-    """Device ``SweepMoments`` of stacked ``pack``ed recordings (passes padded to ``length``
+    """Device ``SweepMoments`` of stacked ``pack``ed recordings (passes of at most ``length``
     samples; a leading axis on every field), on their bucketed sweeps: padding sweeps have
     zero count."""
     return _packed_moments(packed, length, fraction, trim, on_cpu())
