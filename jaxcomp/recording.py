@@ -41,6 +41,7 @@ import numpy as np
 from jaxcomp.constants import STANDARD_GRAVITY
 from jaxcomp.errors import InputError, JaxcompError, ModelError
 from jaxcomp.files import atomic_output, reading, writing
+from jaxcomp.npz import read_npz
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import arm_joint_indices, write_json_atomic
 
@@ -337,8 +338,7 @@ def load_recording(
     if not path.is_file():
         raise InputError(f"recording not found: {path}")
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {k: npz[k] for k in npz.files}
+        data = read_npz(path)
     except (OSError, ValueError, EOFError) as exc:
         raise InputError(f"{path}: not a readable .npz recording ({exc})") from None
     except Exception as exc:  # zipfile.BadZipFile and friends from a truncated file
