@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from itertools import chain
 from pathlib import Path
 
 import click
@@ -398,18 +399,19 @@ def fit(recordings, method, each, out_file, plot_file, com_prior) -> None:
 def _fit_into(recordings, method, each, out_file, plot_file, com_prior) -> None:
     """``jaxcomp fit`` once its output folders are locked."""
     from jaxcomp.files import writing
-    from jaxcomp.recording import load_recording
+    from jaxcomp.recording import load_recording, load_recordings
     from jaxcomp.robot_params import write_json_atomic
 
-    recs = [load_recording(p) for p in recordings]
     start = time.perf_counter()
     if each:
+        recs = load_recordings(recordings)  # read as the fits go
         if method == "jax":
             from jaxcomp.identify.jax_fit import fit_each
             from jaxcomp.plausibility import check_params
 
-            results = fit_each(recs, progress=True, com_prior=com_prior)
-            robot = recs[0].robot()
+            first = next(recs)  # a batch is read while the one before is fitted
+            results = fit_each(chain([first], recs), progress=True, com_prior=com_prior)
+            robot = first.robot()
             for k, p in enumerate(results):
                 check_params(p, robot, f"the jax fit's params of recording {k}")
         else:
@@ -424,6 +426,7 @@ def _fit_into(recordings, method, each, out_file, plot_file, com_prior) -> None:
 
             plot_batch(results, plot_file)
         return
+    recs = [load_recording(p) for p in recordings]
     params = _fit(recs, method, com_prior)
     _save(params, Path(out_file))
     robot = recs[0].robot()
