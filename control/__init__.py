@@ -5,7 +5,10 @@
 their gains (``ImpedanceGains``, ``VelocityGains``, ``BaseGains``; ``impedance_gains``
 carries the impedance presets over to any arm). ``control.loop.run_control`` runs a controller
 at 1 kHz on a ``hardware`` ``Arm`` (and ``Base``), with its ``watchdog``, ``timing`` and
-end-effector ``trajectory``. Frames: the arm's base frame; SI units (m, rad, s, N, N m, A).
+end-effector ``trajectory``; ``run_link`` connects a run to an operator on another thread
+(stop, live gains, monitor). ``external_force`` estimates the force a person applies on the end
+effector from the motor currents (in the impedance controller's step). Frames: the arm's base
+frame; SI units (m, rad, s, N, N m, A).
 """
 
 from jaxcomp.control.base_follower import BaseFollower, follow_twist

@@ -32,6 +32,12 @@ crosses zero, instead of flipping +-l from one cycle to the next. The current is
 ``jaxcomp.current.friction_current`` (Eq. 16 with that direction); g, x, J and M come from one
 ``jaxcomp.dynamics.kinematics_and_dynamics`` call per step.
 
+Each step also estimates the force a person applies on the end effector from the measured
+currents c (``control.external_force``: c_model = r g + a l sign(dq), F = (J^T)^+ (c_model - c)
+/ r, and the static-friction band it cannot be resolved within), reported in the diagnostics.
+The live gains (K_d, D_d and the friction compensation's factor, on 1 or off 0) are inputs of
+the step, defaulting to the gains': a running loop changes them without recompiling.
+
 ``make_impedance_controller`` returns an ``ImpedanceController`` whose ``step`` is one pure,
 jitted JAX function of device arrays (model constants and identified params folded in), and
 ``packed_step`` the same on one packed numpy vector (the 1 kHz loop's);
@@ -42,14 +48,16 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxcomp import dynamics
+from jaxcomp.control.external_force import external_force
 from jaxcomp.control.gains import ImpedanceGains, JointGains
+from jaxcomp.control.linalg import inverse3
 from jaxcomp.control.presets import impedance_gains
 from jaxcomp.current import friction_current
 from jaxcomp.errors import InputError
@@ -65,9 +73,10 @@ from jaxcomp.robot_params import RobotParams
 class Diagnostics(NamedTuple):
     """What one control step saw and did, packed in one array (one output buffer per step).
 
-    ``data`` is (..., 10 + 4 n): ee_pos (3) | error (3) | force (3) | tau (n) | current_raw (n)
-    | rate_limited (n) | saturated (n) | clipped (1). Read it through the properties; they work
-    on JAX and numpy arrays and on batches. ``numpy()`` copies it to the host once.
+    ``data`` is (..., 16 + 5 n): ee_pos (3) | error (3) | force (3) | tau (n) | current_raw (n)
+    | rate_limited (n) | saturated (n) | clipped (1) | current_model (n) | external_force (3)
+    | external_band (3). Read it through the properties; they work on JAX and numpy arrays
+    and on batches. ``numpy()`` copies it to the host once.
     """
 
     data: jax.Array | np.ndarray
@@ -75,7 +84,7 @@ class Diagnostics(NamedTuple):
     @property
     def n(self) -> int:
         """Number of joints."""
-        return (self.data.shape[-1] - 10) // 4
+        return (self.data.shape[-1] - 16) // 5
 
     def _part(self, start: int, size: int):
         return self.data[..., start : start + size]
@@ -120,17 +129,44 @@ class Diagnostics(NamedTuple):
         """() bool, the Cartesian error was longer than error_clip and was clipped."""
         return self.data[..., 9 + 4 * self.n] > 0.5
 
+    @property
+    def current_model(self):
+        """(n,) A, the current the identified model predicts with nothing pushing
+        (``external_force.model_current``), to compare with the measured current."""
+        return self._part(10 + 4 * self.n, self.n)
+
+    @property
+    def external_force(self):
+        """(3,) N, the estimated force applied on the end effector (arm base frame)."""
+        return self._part(10 + 5 * self.n, 3)
+
+    @property
+    def external_band(self):
+        """(3,) N, per axis: the applied force lies within external_force +- this (static
+        friction of joints at rest; zero when every joint moves faster than t)."""
+        return self._part(13 + 5 * self.n, 3)
+
     def numpy(self) -> Diagnostics:
         """The same diagnostics as a host (numpy) array."""
         return Diagnostics(np.asarray(self.data))
 
 
-def pack_diagnostics(ee_pos, error, force, tau, current_raw, rate_limited, saturated, clipped):
-    """Diagnostics from its parts (JAX or numpy arrays; flags as bool)."""
+def estimate_slice(n: int) -> slice:
+    """Where current_model (n) | external_force (3) | external_band (3) lie in the
+    ``Diagnostics.data`` of a robot with n joints."""
+    return slice(10 + 4 * n, 16 + 5 * n)
+
+
+def pack_diagnostics(
+    ee_pos, error, force, tau, current_raw, rate_limited, saturated, clipped, estimate
+):
+    """Diagnostics from its parts (JAX or numpy arrays; flags as bool; ``estimate`` an
+    ``external_force.ExternalForce``)."""
     xp = jnp if isinstance(ee_pos, jax.Array) else np
     parts = [ee_pos, error, force, tau, current_raw]
     flags = [rate_limited, saturated, xp.reshape(clipped, (1,))]
-    return Diagnostics(xp.concatenate(parts + [xp.asarray(f, dtype=float) for f in flags]))
+    flags = [xp.asarray(f, dtype=float) for f in flags]
+    return Diagnostics(xp.concatenate(parts + flags + list(estimate)))
 
 
 # ----------------------------------------------------------------------------- model terms
@@ -185,12 +221,6 @@ def coriolis_times(
     m_dot_w = jax.jvp(mass, (q,), (w,))[1]
     grad = jax.grad(lambda qq: w @ mass(qq) @ dq)(q)
     return 0.5 * (m_dot_dq @ w + m_dot_w @ dq - grad)
-
-
-def inverse3(a: jax.Array) -> jax.Array:
-    """Inverse of a 3x3 matrix by its adjugate (cross products of rows): no LAPACK call."""
-    c0, c1, c2 = jnp.cross(a[1], a[2]), jnp.cross(a[2], a[0]), jnp.cross(a[0], a[1])
-    return jnp.stack([c0, c1, c2], axis=1) / jnp.dot(a[0], c0)
 
 
 def orientation_error(rot: jax.Array, target_rot: jax.Array) -> jax.Array:
@@ -290,10 +320,11 @@ def impedance_step_fn(
     """The pure (unjitted) step function of the controller; see ``ImpedanceController.step``.
 
     The rigid-body terms come from one call of ``dynamics.kinematics_and_dynamics`` (g, the
-    site's pose and Jacobian and M in one pass); the current from ``current.friction_current``.
+    site's pose and Jacobian and M in one pass); the current from ``current.friction_current``;
+    the external force from ``external_force.external_force``.
     """
     tree, site, inertial, grav = res.tree, res.site, res.inertial, res.gravity_vector
-    k_d, d_d = np.asarray(gains.stiffness), np.asarray(gains.damping)
+    k_d0, d_d0 = np.asarray(gains.stiffness), np.asarray(gains.damping)
     k_o, d_o = np.asarray(gains.orientation_stiffness), np.asarray(gains.orientation_damping)
     q_pref, k_n, d_n, limit = res.joint
     ratio, friction, threshold = res.ratio, res.friction, gains.friction_threshold
@@ -302,9 +333,23 @@ def impedance_step_fn(
     orientation, feedforward = gains.orientation, gains.feedforward
     motion_sign, band = gains.friction_direction == "motion", gains.friction_band
 
-    def step(q, dq, target_pos, target_vel, target_acc, prev_current, target_rot=None):
+    def step(
+        q,
+        dq,
+        target_pos,
+        target_vel,
+        target_acc,
+        prev_current,
+        target_rot=None,
+        current=None,
+        live=None,
+    ):
         kd = dynamics.kinematics_and_dynamics(tree, q, site, inertial, grav)
         jac = kd.jacobian[:3]
+        if live is None:  # the gains' own, folded in
+            k_d, d_d, compensate = k_d0, d_d0, 1.0
+        else:
+            k_d, d_d, compensate = live[0:3], live[3:6], live[6]
         error, clipped = clip_error(target_pos - kd.position, gains.deadband, gains.error_clip)
         force = k_d * error + d_d * (target_vel - jac @ dq)
         tau2 = k_n * (q_pref - q) - d_n * dq
@@ -331,36 +376,84 @@ def impedance_step_fn(
         tau_motion = jac.T @ f_total + tau2  # everything but the gravity compensation
         tau = tau_motion + kd.gravity
         tau_rest = tau_motion if motion_sign else tau
-        raw = friction_current(tau, tau_rest, dq, ratio, friction, threshold, band)
+        raw = friction_current(tau, tau_rest, dq, ratio, compensate * friction, threshold, band)
         cur, rate_limited, saturated = limit_current(raw, prev_current, max_step, limit)
+        measured = prev_current if current is None else current
+        estimate = external_force(jac, kd.gravity, dq, measured, ratio, friction, threshold)
         diag = pack_diagnostics(
-            kd.position, error, force, tau, raw, rate_limited, saturated, clipped
+            kd.position, error, force, tau, raw, rate_limited, saturated, clipped, estimate
         )
         return cur, diag
 
     return step
 
 
+#: Length of the live gains: K_d (3) N/m | D_d (3) N s/m | friction compensation factor (1).
+LIVE_SIZE = 7
+
+
+def live_gains(stiffness, damping, friction_compensation: bool | float = True) -> np.ndarray:
+    """The live gains vector (``LIVE_SIZE``,) of a step: K_d (3) N/m, D_d (3) N s/m (one
+    number: every axis) and the friction compensation factor (1.0 on, 0.0 off). No checks:
+    the gains come validated (``ImpedanceGains``, ``presets.check_live_gains``)."""
+    k = np.broadcast_to(np.asarray(stiffness, dtype=float), (3,))
+    d = np.broadcast_to(np.asarray(damping, dtype=float), (3,))
+    return np.concatenate([k, d, [float(friction_compensation)]])
+
+
 def packed_size(n: int, orientation: bool = False) -> int:
-    """Length of the packed input of ``packed_step``: q | dq | prev | pos | vel | acc
-    [| target_rot row-major], i.e. 3 n + 9 (+ 9 with an orientation task)."""
-    return 3 * n + 9 + (9 if orientation else 0)
+    """Length of the packed input of ``packed_step``: q | dq | prev | pos | vel | acc |
+    current | live [| target_rot row-major], i.e. 4 n + 16 (+ 9 with an orientation task)."""
+    return 4 * n + 9 + LIVE_SIZE + (9 if orientation else 0)
 
 
-def unpack_state(x, n: int, orientation: bool):
-    """(q, dq, prev, pos, vel, acc, rot or None) from a packed input (see ``packed_size``)."""
+class PackedState(NamedTuple):
+    """The parts of a packed input (see ``packed_size``): q rad, dq rad/s, prev (the last
+    command) A, target pos m, vel m/s, acc m/s^2, measured current A, live gains
+    (``live_gains``), rot (3, 3) or None."""
+
+    q: Any
+    dq: Any
+    prev: Any
+    pos: Any
+    vel: Any
+    acc: Any
+    current: Any
+    live: Any
+    rot: Any
+
+
+def packed_slices(n: int) -> dict[str, slice]:
+    """Where each part of a packed input lies (``packed_size``; rot only with orientation)."""
     k = 3 * n
-    rot = x[k + 9 : k + 18].reshape(3, 3) if orientation else None
-    return x[:n], x[n : 2 * n], x[2 * n : k], x[k : k + 3], x[k + 3 : k + 6], x[k + 6 : k + 9], rot
+    live = k + 9 + n
+    return {
+        "q": slice(0, n),
+        "dq": slice(n, 2 * n),
+        "prev": slice(2 * n, k),
+        "pos": slice(k, k + 3),
+        "vel": slice(k + 3, k + 6),
+        "acc": slice(k + 6, k + 9),
+        "current": slice(k + 9, live),
+        "live": slice(live, live + LIVE_SIZE),
+        "rot": slice(live + LIVE_SIZE, live + LIVE_SIZE + 9),
+    }
+
+
+def unpack_state(x, n: int, orientation: bool) -> PackedState:
+    """The ``PackedState`` of a packed input (see ``packed_size``)."""
+    sl = packed_slices(n)
+    rot = x[sl["rot"]].reshape(3, 3) if orientation else None
+    return PackedState(*(x[sl[k]] for k in PackedState._fields[:-1]), rot)
 
 
 def impedance_packed_fn(step_fn, n: int, orientation: bool):
     """``step_fn`` on one packed input vector, returning one packed output vector
-    current (n) | ``Diagnostics.data`` (10 + 4 n): one transfer each way per control cycle."""
+    current (n) | ``Diagnostics.data`` (16 + 5 n): one transfer each way per control cycle."""
 
     def packed(x):
-        q, dq, prev, pos, vel, acc, rot = unpack_state(x, n, orientation)
-        cur, diag = step_fn(q, dq, pos, vel, acc, prev, rot)
+        s = unpack_state(x, n, orientation)
+        cur, diag = step_fn(s.q, s.dq, s.pos, s.vel, s.acc, s.prev, s.rot, s.current, s.live)
         return jnp.concatenate([cur, diag.data])
 
     return packed
@@ -375,17 +468,22 @@ class ImpedanceController:
         resolved: the ``ResolvedModel`` the step is built on (``impedance_step_fn(resolved,
             gains)`` rebuilds the step function, e.g. with per-world params swapped in).
         step: jitted pure function ``step(q, dq, target_pos, target_vel, target_acc,
-            prev_current[, target_rot]) -> (current (n,) A, Diagnostics)``; q rad (n,),
-            dq rad/s (n,), target_pos m (3,), target_vel m/s (3,), target_acc m/s^2 (3,),
-            prev_current A (n,) (the last command, for the rate limit), target_rot (3, 3)
-            only with orientation gains; arm base frame. No input checks: pass device arrays
-            (``check_state`` makes them), e.g. the previous step's current as it is.
+            prev_current[, target_rot][, current][, live]) -> (current (n,) A, Diagnostics)``;
+            q rad (n,), dq rad/s (n,), target_pos m (3,), target_vel m/s (3,), target_acc
+            m/s^2 (3,), prev_current A (n,) (the last command, for the rate limit),
+            target_rot (3, 3) only with orientation gains (else None), current A (n,) the
+            measured motor currents for the external force estimate (None: prev_current, what
+            a current-controlled motor draws), live (``LIVE_SIZE``,) the live gains
+            (``live_gains``; None: the gains'); arm base frame. No input checks: pass device
+            arrays (``check_state`` makes them), e.g. the previous step's current as it is.
         step_fn: the same function unjitted (to compose, vmap or jit with more).
         packed_step: jitted ``packed_step(x) -> y`` for the 1 kHz loop, the same law on one
             numpy vector x = q | dq | prev_current | target_pos | target_vel | target_acc
-            [| target_rot row-major] (``packed_size``), y = current (n) | Diagnostics data:
-            one host-to-device and one device-to-host copy per cycle instead of six and two
-            (about 30 us less per call on a 2-core CPU). No input checks.
+            | current | live [| target_rot row-major] (``packed_size``, ``packed_slices``),
+            y = current (n) | Diagnostics data: one host-to-device and one device-to-host
+            copy per cycle instead of eight and two (about 30 us less per call on a 2-core
+            CPU). No input checks.
+        live: (``LIVE_SIZE``,) the gains' own live gains (K_d, D_d, compensation on).
     """
 
     def __init__(
@@ -408,6 +506,7 @@ class ImpedanceController:
         self.step = jax.jit(self.step_fn)
         self.packed_size = packed_size(self.n, gains.orientation)
         self.packed_step = jax.jit(impedance_packed_fn(self.step_fn, self.n, gains.orientation))
+        self.live = live_gains(gains.stiffness, gains.damping, True)
 
     def __repr__(self) -> str:
         return (
@@ -424,8 +523,12 @@ class ImpedanceController:
         target_acc=None,
         prev_current=None,
         target_rot=None,
+        current=None,
+        live=None,
     ) -> tuple:
-        """Validated device arrays for ``step`` (None: zeros); InputError naming a bad input."""
+        """Validated device arrays for ``step`` (None: zeros; current and live only when
+        given, after target_rot, None without orientation gains); InputError naming a bad
+        input."""
         n, r = self.n, self.robot
         args = [
             check_joint_vector(q, n, "q (rad)", r),
@@ -444,7 +547,17 @@ class ImpedanceController:
             if rot.shape != (3, 3) or not np.all(np.isfinite(rot)):
                 raise InputError(f"target_rot must be a finite (3, 3) rotation matrix, got {rot}")
             args.append(rot)
-        return tuple(jnp.asarray(a) for a in args)
+        if current is not None or live is not None:
+            if not self.gains.orientation:
+                args.append(None)
+            if current is not None:
+                current = check_joint_vector(current, n, "current (A)", r)
+            if live is not None:
+                live = np.asarray(live, dtype=float)
+                if live.shape != (LIVE_SIZE,) or not np.all(np.isfinite(live)):
+                    raise InputError(f"live must be {LIVE_SIZE} finite numbers (live_gains)")
+            args += [current, live]
+        return tuple(None if a is None else jnp.asarray(a) for a in args)
 
     def checked_step(
         self,
@@ -455,15 +568,33 @@ class ImpedanceController:
         target_acc=None,
         prev_current=None,
         target_rot=None,
+        current=None,
+        live=None,
     ):
         """``step`` after ``check_state``: for interactive use, not the 1 kHz loop."""
         return self.step(
-            *self.check_state(q, dq, target_pos, target_vel, target_acc, prev_current, target_rot)
+            *self.check_state(
+                q, dq, target_pos, target_vel, target_acc, prev_current, target_rot, current, live
+            )
         )
 
-    def pack(self, q, dq, prev_current, target_pos, target_vel, target_acc, target_rot=None):
-        """The packed input of ``packed_step`` (numpy, no checks)."""
-        parts = [q, dq, prev_current, target_pos, target_vel, target_acc]
+    def pack(
+        self,
+        q,
+        dq,
+        prev_current,
+        target_pos,
+        target_vel,
+        target_acc,
+        target_rot=None,
+        current=None,
+        live=None,
+    ):
+        """The packed input of ``packed_step`` (numpy, no checks; current None: prev_current,
+        live None: the gains')."""
+        current = prev_current if current is None else current
+        live = self.live if live is None else live
+        parts = [q, dq, prev_current, target_pos, target_vel, target_acc, current, live]
         if self.gains.orientation:
             parts.append(np.ravel(target_rot))
         return np.concatenate([np.asarray(p, dtype=float) for p in parts])
@@ -547,7 +678,18 @@ class ImpedanceControllerPinocchio:
     def _from_pin(self, x: np.ndarray) -> np.ndarray:
         return x if self._identity else x[..., self._perm]
 
-    def step(self, q, dq, target_pos, target_vel, target_acc, prev_current, target_rot=None):
+    def step(
+        self,
+        q,
+        dq,
+        target_pos,
+        target_vel,
+        target_acc,
+        prev_current,
+        target_rot=None,
+        current=None,
+        live=None,
+    ):
         """(current (n,) A, Diagnostics) for numpy inputs; see ``ImpedanceController.step``."""
         pin, pm, pd, g, res = self._pin, self.model, self.data, self.gains, self.resolved
         qp, vp = self._to_pin(np.asarray(q, float)), self._to_pin(np.asarray(dq, float))
@@ -560,7 +702,10 @@ class ImpedanceControllerPinocchio:
         frame = pd.oMf[self._frame]
         pos, jac = frame.translation.copy(), jac6[:3]
         error, clipped = clip_error(target_pos - pos, g.deadband, g.error_clip, np)
-        force = np.asarray(g.stiffness) * error + np.asarray(g.damping) * (target_vel - jac @ dq)
+        if live is None:
+            live = live_gains(g.stiffness, g.damping, True)
+        k_d, d_d, compensate = live[0:3], live[3:6], live[6]
+        force = k_d * error + d_d * (target_vel - jac @ dq)
         k_n, d_n = res.joint.stiffness, res.joint.damping
         tau2 = k_n * (res.joint.posture - q) - d_n * dq
         if g.orientation:
@@ -587,11 +732,17 @@ class ImpedanceControllerPinocchio:
         tau_motion = jac.T @ f_total + tau2
         tau = tau_motion + grav
         tau_rest = tau_motion if g.friction_direction == "motion" else tau
+        ratio, friction, threshold = res.ratio, res.friction, g.friction_threshold
         raw = friction_current(
-            tau, tau_rest, dq, res.ratio, res.friction, g.friction_threshold, g.friction_band, np
+            tau, tau_rest, dq, ratio, compensate * friction, threshold, g.friction_band, np
         )
+        prev = np.asarray(prev_current, float)
         cur, rate_limited, saturated = limit_current(
-            raw, np.asarray(prev_current, float), g.max_current_step, res.joint.limit, np
+            raw, prev, g.max_current_step, res.joint.limit, np
         )
-        diag = pack_diagnostics(pos, error, force, tau, raw, rate_limited, saturated, clipped)
+        measured = prev if current is None else np.asarray(current, float)
+        estimate = external_force(jac, grav, dq, measured, ratio, friction, threshold, np)
+        diag = pack_diagnostics(
+            pos, error, force, tau, raw, rate_limited, saturated, clipped, estimate
+        )
         return cur, diag

@@ -29,7 +29,10 @@ base; acceleration with the base's acceleration neglected); the controller gives
 the watchdog checks it; the base follower's twist goes to the base; one sample is recorded
 (time, q, dq, measured current, joint -1, direction 0, plus ``target`` (3,) world m, ``ee``
 (3,) world m, ``base`` (3,) x m, y m, yaw rad, ``command`` (n,) A (rad/s for the velocity
-controller): the command computed from this state, sent at the next cycle); then the loop waits
+controller): the command computed from this state, sent at the next cycle; with the impedance
+controller also its external force estimate (``control.external_force``): ``current_model``
+(n,) A, ``wrench`` (3,) N, the force applied on the end effector, and ``wrench_band`` (3,) N,
+per axis the static-friction band it lies within, both in the world frame); then the loop waits
 for the next 1 kHz deadline (real time: absolute ``perf_counter_ns`` ticks, sleep then spin for
 the last 200 us) or goes straight on (lock step with a simulator: deterministic, as fast as the
 CPU allows) and sends it.
@@ -41,8 +44,13 @@ must reach); during the run the watchdog also ends a run whose end effector stay
 Lite; in guidance mode none, where a person may hold the arm off its target) from its target for
 more than ``max_error_time`` s (default 2 s) with ``not_tracking``.
 
-Any watchdog trip, hardware fault, Ctrl-C or exception ends the run with the arm in POSITION
-mode and the base stopped, before anything else is done (``safe_stop`` in a ``finally``).
+A ``RunLink`` (``control.run_link``) connects the run to an operator on another thread: a
+stop request, live gains (K_d, D_d, friction compensation, taken up at the next cycle without
+recompiling) and a monitor fed with every 33rd recorded sample (the browser console's feed).
+
+Any stop request, watchdog trip, hardware fault, Ctrl-C or exception ends the run with the arm
+in POSITION mode and the base stopped, before anything else is done (``safe_stop`` in a
+``finally``).
 The recording is written incrementally (``RecordingWriter``, one part per 1000 samples, handed
 over a block at a time) and joined into ``out_dir/recording.npz`` at the end;
 ``out_dir/timing.json`` holds the timing.
@@ -76,7 +84,8 @@ import numpy as np
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.control.base_follower import BaseFollower
 from jaxcomp.control.gains import BaseGains
-from jaxcomp.control.impedance import ImpedanceController
+from jaxcomp.control.impedance import ImpedanceController, estimate_slice, packed_slices
+from jaxcomp.control.run_link import MonitorStart, RunLink
 from jaxcomp.control.timing import CycleTimer, wait_until
 from jaxcomp.control.trajectory import Static, Trajectory, TrajectorySpec, parse_trajectory
 from jaxcomp.control.velocity import VelocityController
@@ -93,6 +102,10 @@ log = logging.getLogger(__name__)
 
 RECORDING = "recording.npz"
 TIMING = "timing.json"
+#: s, real time: the longest gap between two states before the watchdog stops a run.
+STALL_LIMIT = 0.02
+#: Cycles of timing stamps preallocated (10 min at 1 kHz, 19 MB): a longer run grows them.
+TIMER_CAPACITY = 600_000
 #: s, how long the end effector may stay beyond ``max_error`` of its target (``run_control``).
 MAX_ERROR_TIME = 2.0
 #: Smallest singular value of the end effector's position Jacobian, relative to its largest,
@@ -279,8 +292,10 @@ class _Law:
     """Adapter of a controller to the loop: mode, command, end-effector position (arm frame).
 
     The controller runs as its ``packed_step`` on one preallocated numpy vector (q | dq |
-    previous command | target pos | vel | acc [| rot], see ``impedance.packed_size``) that the
-    loop fills in place: one host-to-device and one device-to-host copy per cycle.
+    previous command | target pos | vel | acc | measured current | live gains [| rot], see
+    ``impedance.packed_slices``) that the loop fills in place: one host-to-device and one
+    device-to-host copy per cycle. An impedance controller also estimates the external force
+    (``estimate``: its diagnostics' current_model, external force and band, after ``run``).
     """
 
     def __init__(self, controller, arm: Arm):
@@ -304,9 +319,20 @@ class _Law:
             raise InputError(f"the controller has {controller.n} joints, the arm {arm.n}")
         n = self.n = controller.n
         self.x = np.zeros(controller.packed_size)  # the packed input, filled in place
-        self.target = self.x[3 * n : 3 * n + 9]  # pos | vel | acc, arm frame
-        self._prev = self.x[2 * n : 3 * n]
+        sl = packed_slices(n)
+        self.target = self.x[sl["pos"].start : sl["acc"].stop]  # pos | vel | acc, arm frame
+        self._prev = self.x[sl["prev"]]
+        self._measured = self.x[sl["current"]]
+        self.live = self.x[sl["live"]]  # K_d | D_d | friction compensation (impedance)
+        self._rot = sl["rot"]
         self._current = self.mode is ControlMode.CURRENT
+        #: whether ``run`` estimates the external force (an impedance controller)
+        self.estimates = self._current
+        if self.estimates:
+            self.live[:] = controller.live
+        part = estimate_slice(n)  # current_model | F | band, after the command (n)
+        self._estimate = slice(n + part.start, n + part.stop)
+        self.estimate = np.zeros(n + 6)
 
     def start(self, state: ArmState) -> None:
         """Reset the command memory to what the arm applies when it switches (measured
@@ -324,19 +350,23 @@ class _Law:
 
     def set_rot(self, rot: np.ndarray) -> None:
         """The target orientation (3, 3) in the arm frame (orientation gains only)."""
-        k = 3 * self.n + 9
-        self.x[k : k + 9] = rot.ravel()
+        self.x[self._rot] = rot.ravel()
 
-    def run(self, q, dq) -> tuple[np.ndarray, np.ndarray]:
-        """(command (n,) A or rad/s, end-effector position (3,) m, arm frame) at q, dq for the
-        target already in ``self.target`` (and ``set_rot``); read-only views of one output."""
+    def run(self, q, dq, current) -> tuple[np.ndarray, np.ndarray]:
+        """(command (n,) A or rad/s, end-effector position (3,) m, arm frame) at q, dq and
+        the measured ``current`` (A) for the target already in ``self.target`` (and
+        ``set_rot``); read-only views of one output. An impedance controller's
+        current_model (n) A | external force (3) N | band (3) N, arm frame, are then in
+        ``estimate`` (a view as well)."""
         n, x = self.n, self.x
         x[:n] = q
         x[n : 2 * n] = dq
+        self._measured[:] = current
         out = np.asarray(self.controller.packed_step(x))
         cmd = out[:n]
         if self._current:
             self._prev[:] = cmd
+            self.estimate = out[self._estimate]
         return cmd, out[n : n + 3]
 
     def command(self, value: np.ndarray) -> ArmCommand:
@@ -378,25 +408,26 @@ class _BlockWriter(RecordingWriter):
 
 class _Recorder:
     """Per-sample rows into preallocated blocks of ``block`` samples (one row of
-    t | q | dq | current | command | target | ee | base per cycle), each full block handed to
-    the writer (which flushes it to a part file): on a writer thread in real time (the loop
-    never waits for the disk), inline in lock step."""
+    t | q | dq | current | command | target | ee | base [| current_model | wrench |
+    wrench_band] per cycle, the last three with ``estimate``), each full block handed to the
+    writer (which flushes it to a part file): on a writer thread in real time (the loop
+    never waits for the disk), inline in lock step. ``last_row`` is the row written last."""
 
-    def __init__(self, writer: _BlockWriter, n: int, block: int, threaded: bool):
+    def __init__(self, writer: _BlockWriter, n: int, block: int, threaded: bool, estimate: bool):
         self.writer, self.n, self.block = writer, n, block
-        c = np.cumsum([1, n, n, n, n, 3, 3, 3])
-        self._cols = {
-            "t": 0,
-            "q": slice(c[0], c[1]),
-            "dq": slice(c[1], c[2]),
-            "current": slice(c[2], c[3]),
-            "command": slice(c[3], c[4]),
-            "target": slice(c[4], c[5]),
-            "ee": slice(c[5], c[6]),
-            "base": slice(c[6], c[7]),
+        widths = {"t": 1, "q": n, "dq": n, "current": n, "command": n}
+        widths |= {"target": 3, "ee": 3, "base": 3}
+        if estimate:
+            widths |= {"current_model": n, "wrench": 3, "wrench_band": 3}
+        stops = np.cumsum(list(widths.values()))
+        self.columns = {
+            name: slice(int(stop - w), int(stop))
+            for (name, w), stop in zip(widths.items(), stops, strict=True)
         }
-        self.width = int(c[-1])
+        self._cols = dict(self.columns, t=0)
+        self.width = int(stops[-1])
         self._new()
+        self.last_row = self.rows[0]
         self._error: BaseException | None = None
         self._queue: queue.Queue | None = None
         self._thread = None
@@ -409,9 +440,10 @@ class _Recorder:
         self.rows = np.empty((self.block, self.width))
         self.i = 0
 
-    def add(self, t, q, dq, current, command, frames) -> None:
+    def add(self, t, q, dq, current, command, frames, current_model=None) -> None:
         """One sample: t s, q, dq, current, command (n,), and ``frames`` the 9 floats target
-        (world m) | ee (world m) | base pose (x m, y m, yaw rad)."""
+        (world m) | ee (world m) | base pose (x m, y m, yaw rad) [| wrench (world N) | band
+        (world N)], with the model's current (n,) A when estimating."""
         n = self.n
         row = self.rows[self.i]
         row[0] = t
@@ -419,7 +451,13 @@ class _Recorder:
         row[1 + n : 1 + 2 * n] = dq
         row[1 + 2 * n : 1 + 3 * n] = current
         row[1 + 3 * n : 1 + 4 * n] = command
-        row[1 + 4 * n :] = frames
+        if current_model is None:
+            row[1 + 4 * n :] = frames
+        else:
+            row[1 + 4 * n : 10 + 4 * n] = frames[:9]
+            row[10 + 4 * n : 10 + 5 * n] = current_model
+            row[10 + 5 * n :] = frames[9:]
+        self.last_row = row
         self.i += 1
         if self.i == self.block:
             self._emit()
@@ -467,7 +505,8 @@ class ControlResult:
     """How a run ended and what it measured.
 
     Attributes:
-        kind: "completed", "interrupted" (Ctrl-C), a watchdog trip kind
+        kind: "completed", "stopped" (``RunLink.stop``), "interrupted" (Ctrl-C), a watchdog
+            trip kind
             (``control.watchdog``; "not_tracking": the end effector stayed off its target),
             "hardware_fault" (a simulator's instability too), "command_refused" or "error".
         reason: one readable line.
@@ -502,8 +541,9 @@ class ControlResult:
 
     @property
     def ok(self) -> bool:
-        """True when the run completed or was interrupted by the user (no fault)."""
-        return self.kind in ("completed", "interrupted")
+        """True when the run completed, or was stopped or interrupted by the user (no
+        fault)."""
+        return self.kind in ("completed", "stopped", "interrupted")
 
     def summary(self) -> str:
         """A few readable lines: how it ended, tracking error, timing."""
@@ -559,6 +599,8 @@ def run_control(
     max_error: float | None = None,
     max_error_time: float = MAX_ERROR_TIME,
     before_start: Callable[[float], None] | None = None,
+    link: RunLink | None = None,
+    stall_limit: float | None = STALL_LIMIT,
 ) -> ControlResult:
     """Run guidance or tracking mode for ``duration`` s (see the module doc).
 
@@ -586,7 +628,7 @@ def run_control(
         watchdog: default: current limit = the arm's limits, saturation at the controller's
             limit for ``max_saturated_cycles`` cycles, the arm's ``stale_tolerance`` (repeated
             states of lost replies the arm tolerates; 0 for the simulator), loop-stall limit
-            20 ms in real time.
+            ``stall_limit`` (20 ms) in real time.
         base_velocity_compensation: give the controller the target's velocity relative to
             the moving arm base (from the odometry twist); False: the target's own velocity.
         on_cycle: called each cycle as ``on_cycle(k, state, command, target)`` (target: (3,)
@@ -599,6 +641,12 @@ def run_control(
         before_start: called with the run's duration (s) once it is resolved, before anything
             is switched or written (e.g. to refuse events outside the run by raising
             ``InputError``).
+        link: a ``RunLink`` from outside the loop's thread: a stop request (ends the run,
+            kind "stopped"), live gains, a monitor fed every ``monitor.every`` cycles.
+        stall_limit: s, real time only: the longest the loop may go without a new state
+            before the watchdog ends the run (a stalled loop leaves a real arm on its last
+            command); None: no limit (a lock-step simulator waits for the loop). Ignored with
+            ``watchdog``.
 
     Targets the arm alone must reach (guidance mode, or tracking without a base) that get
     farther from its base than its reach (``workspace.arm_reach``) are refused (InputError).
@@ -626,14 +674,35 @@ def run_control(
         max_error=max_error,
         max_error_time=max_error_time,
         before_start=before_start,
+        stall_limit=stall_limit,
     )
-    end = _loop(run, arm, base, realtime, on_cycle)
+    link = RunLink() if link is None else link
+    if link.monitor is not None:
+        start = MonitorStart(
+            run.mode.value,
+            getattr(run.work.traj, "description", ""),
+            run.recorder.columns,
+            run.timer,
+            run.duration,
+        )
+        _notify(link.monitor.started, start)
+    end = _loop(run, arm, base, realtime, on_cycle, link)
     result = _finish(run, end)
+    if link.monitor is not None:
+        _notify(link.monitor.ended, result)
     if end.unexpected is not None:
         raise end.unexpected
     if end.kind == FAULT:
         log.warning("control ended on an actuator fault: %s", end.reason)
     return result
+
+
+def _notify(call: Callable[[Any], None], what: Any) -> None:
+    """``call(what)``, a monitor's: its failure is logged, never raised."""
+    try:
+        call(what)
+    except Exception as exc:  # noqa: BLE001 - a monitor never ends a run
+        log.error("the run's monitor failed: %s", exc)
 
 
 @dataclass
@@ -696,6 +765,7 @@ def _set_up(
     max_error: float | None,
     max_error_time: float,
     before_start: Callable[[float], None] | None,
+    stall_limit: float | None,
 ) -> _Run:
     """The set-up of ``run_control`` (its arguments): check that the arm is healthy and
     still, resolve the frames and the trajectory, compile and check the first command, open
@@ -717,7 +787,7 @@ def _set_up(
         law.saturation,
         max_saturated_cycles=max_saturated_cycles,
         stale_cycles=arm.stale_tolerance,
-        max_gap=0.02 if realtime else None,
+        max_gap=stall_limit if realtime else None,
         unit=law.unit,
         max_error=max_error,
         max_error_cycles=max(int(round(max_error_time / CONTROL_PERIOD)), 1),
@@ -791,17 +861,21 @@ def _set_up(
     law.start(state)
 
     out.mkdir(parents=True, exist_ok=True)
+    extra = {**_EXTRA, "command": (arm.n,)}
+    if law.estimates:
+        extra |= {"current_model": (arm.n,), "wrench": (3,), "wrench_band": (3,)}
     writer = _BlockWriter(
         out / RECORDING,
         model,
         arm.n,
-        extra={**_EXTRA, "command": (arm.n,)},
+        extra=extra,
         joints=tuple(arm.joint_names),
         flush_every=1000,
         require_sweep=False,
     )
-    recorder = _Recorder(writer, arm.n, 1000, threaded=realtime)
-    timer = CycleTimer(CONTROL_PERIOD, capacity=n_cycles + 2, realtime=realtime)
+    recorder = _Recorder(writer, arm.n, 1000, realtime, law.estimates)
+    capacity = min(n_cycles + 2, TIMER_CAPACITY)  # longer runs grow it (by doubling)
+    timer = CycleTimer(CONTROL_PERIOD, capacity=capacity, realtime=realtime)
     work.recorder = recorder
     return _Run(mode, law, wd, work, state, n_cycles, duration, out, recorder, timer)
 
@@ -812,13 +886,18 @@ def _loop(
     base: Base | None,
     realtime: bool,
     on_cycle: Callable[[int, ArmState, np.ndarray, np.ndarray], None] | None,
+    link: RunLink,
 ) -> _End:
     """The loop of ``run_control``: switch the arm to the law's mode, then one command per
     cycle (on 1 kHz deadlines in real time, else in lock step) until ``run.n_cycles`` cycles,
-    a watchdog trip, a hardware fault, a refused command, Ctrl-C or any exception; always
-    ends with ``safe_stop`` (arm in POSITION mode, base stopped)."""
+    a stop request, a watchdog trip, a hardware fault, a refused command, Ctrl-C or any
+    exception; always ends with ``safe_stop`` (arm in POSITION mode, base stopped)."""
     law, wd, work, timer = run.law, run.watchdog, run.work, run.timer
     state = run.state
+    stop, monitor = link.stop, link.monitor
+    tuning = link.tuning if law.estimates else None
+    every = max(int(monitor.every), 1) if monitor is not None else 0
+    tuned = 0  # the version of the tuning applied
     kind, reason = "completed", f"ran the full {run.duration:g} s"
     stop_errors: list[str] = []
     cycles = 0
@@ -834,6 +913,10 @@ def _loop(
         gc.disable()
         arm.set_modes(law.mode)
         law.start(state)
+        if tuning is not None and tuning.version != tuned:
+            tuned = tuning.version
+            law.live[:] = tuning.values
+            tuning.applied = tuned
         cmd = work(state)
         if on_cycle is not None:
             on_cycle(0, state, cmd, work.target_w)
@@ -841,11 +924,18 @@ def _loop(
         for k in range(1, run.n_cycles + 1):
             if realtime:
                 wait_until(deadline)
+            if stop is not None and stop.is_set():
+                kind, reason = "stopped", "stopped on request"
+                break
             cycles = k
             sent = time.perf_counter_ns()
             state = arm.cycle(law.command(cmd))
             recv = time.perf_counter_ns()
             wd.check_state(state, recv if realtime else None)
+            if tuning is not None and tuning.version != tuned:  # new live gains, from now on
+                tuned = tuning.version
+                law.live[:] = tuning.values
+                tuning.applied = tuned
             cmd = work(state)
             if on_cycle is not None:
                 on_cycle(k, state, cmd, work.target_w)
@@ -854,6 +944,12 @@ def _loop(
             timer.record(sent, recv, done, deadline if realtime else sent + period_ns)
             if realtime and done > deadline:  # a whole tick lost: skip it, keep the phase
                 deadline += -(-(done - deadline) // period_ns) * period_ns
+            if every and k % every == 0:
+                try:
+                    monitor.sample(k, run.recorder.last_row)
+                except Exception as exc:  # noqa: BLE001 - a monitor never ends a run
+                    log.error("the run's monitor failed and was dropped: %s", exc)
+                    every = 0
     except WatchdogTrip as exc:
         kind, reason = exc.kind, str(exc)
     except HardwareFault as exc:
@@ -969,7 +1065,25 @@ class _Cycle:
         self.targets(0.0, px, py, yaw, 0.0, 0.0, 0.0, False)
         if self.rot_b is not None or self.rot_w is not None:
             self.law.set_rot(self.rot(yaw))
-        return self.law.run(state.q, state.dq)[0]
+        return self.law.run(state.q, state.dq, state.current)[0]
+
+    def wrench_world(self, c: float, s: float) -> tuple[float, ...]:
+        """The law's external force estimate (arm frame) in the world at base yaw (cos c,
+        sin s): force (3) N | band (3) N, the band the world-axis box around the rotated one
+        (|R| b, R = Rz(yaw) Rm)."""
+        f0, f1, f2, b0, b1, b2 = self.law.estimate[self.law.n :].tolist()
+        m = self._rm
+        r00, r01, r02 = c * m[0] - s * m[3], c * m[1] - s * m[4], c * m[2] - s * m[5]
+        r10, r11, r12 = s * m[0] + c * m[3], s * m[1] + c * m[4], s * m[2] + c * m[5]
+        r20, r21, r22 = m[6], m[7], m[8]
+        return (
+            r00 * f0 + r01 * f1 + r02 * f2,
+            r10 * f0 + r11 * f1 + r12 * f2,
+            r20 * f0 + r21 * f1 + r22 * f2,
+            abs(r00) * b0 + abs(r01) * b1 + abs(r02) * b2,
+            abs(r10) * b0 + abs(r11) * b1 + abs(r12) * b2,
+            abs(r20) * b0 + abs(r21) * b1 + abs(r22) * b2,
+        )
 
     def __call__(self, state: ArmState) -> np.ndarray:
         if self.base is not None:
@@ -986,7 +1100,7 @@ class _Cycle:
         )
         if self.rot_b is not None or self.rot_w is not None:
             self.law.set_rot(self.rot(yaw))
-        cmd, ee_a = self.law.run(q, state.dq)
+        cmd, ee_a = self.law.run(q, state.dq, state.current)
         self.wd.check_command(cmd, state.t)
         m, (m0, m1, m2) = self._rm, self._pm  # ee in the base frame: p_m + Rm ee_a
         a0, a1, a2 = ee_a.tolist()
@@ -999,14 +1113,13 @@ class _Cycle:
             p_d = tb if self.guidance else self._desired
             self.base.send_twist(self.follower.twist(eb, p_d, q))
         self._target_w = tw
-        self.recorder.add(
-            state.t,
-            q,
-            state.dq,
-            state.current,
-            cmd,
-            (*tw, ox + c * eb[0] - s * eb[1], oy + s * eb[0] + c * eb[1], eb[2], px, py, yaw),
-        )
+        frames = (*tw, ox + c * eb[0] - s * eb[1], oy + s * eb[0] + c * eb[1], eb[2], px, py, yaw)
+        if self.law.estimates:
+            frames += self.wrench_world(c, s)
+            model = self.law.estimate[: self.law.n]
+        else:
+            model = None
+        self.recorder.add(state.t, q, state.dq, state.current, cmd, frames, model)
         d0, d1, d2 = eb[0] - tb[0], eb[1] - tb[1], eb[2] - tb[2]
         e2 = d0 * d0 + d1 * d1 + d2 * d2
         self.sq_sum += e2

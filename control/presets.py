@@ -37,6 +37,7 @@ In both cases the current rate limit scales with each joint's current limit (200
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -53,6 +54,8 @@ REFERENCE_APPARENT_MASS = 0.1203
 REFERENCE_REACH = 0.914
 #: Largest D_n,j T / I_j of a derived nullspace damping (T = ``CONTROL_PERIOD``).
 DAMPING_NUMBER = 0.25
+#: The most Cartesian stiffness a person may set, in multiples of the arm's tracking preset.
+STIFFNESS_LIMIT = 2.5
 #: Custom numeric a model declares a preset's figures in (``.format(preset=name)``).
 DECLARED_PRESET = "jaxcomp_impedance_{preset}"
 #: What the declared figures are, in order.
@@ -165,6 +168,54 @@ def impedance_gains(robot: Robot, preset: str = "tracking", **changes) -> Impeda
     return ImpedanceGains.preset(preset, **values)
 
 
+class GainLimits(NamedTuple):
+    """The Cartesian gains a person may set (``jaxcomp control --stiffness``, the console):
+    ``stiffness`` N/m and ``damping`` N s/m, the most per axis (0 the least)."""
+
+    stiffness: float
+    damping: float
+
+
+def gain_limits(robot: Robot) -> GainLimits:
+    """``robot``'s ``GainLimits``: stiffness up to ``STIFFNESS_LIMIT`` times its tracking
+    preset's (Gen3 Lite: 1000 N/m); damping up to ``DAMPING_NUMBER`` m / T (m its apparent
+    mass, T the 1 ms period: more rings with the loop's one-cycle delay; Gen3 Lite: 30.1
+    N s/m), or the tracking preset's if that is higher."""
+    tracking = impedance_gains(robot, "tracking")
+    damping = DAMPING_NUMBER * arm_figures(robot).apparent_mass / CONTROL_PERIOD
+    return GainLimits(
+        STIFFNESS_LIMIT * max(tracking.stiffness), max(damping, max(tracking.damping))
+    )
+
+
+def check_live_gains(robot: Robot, stiffness, damping) -> tuple[float, float]:
+    """(stiffness N/m, damping N s/m) as numbers within ``gain_limits(robot)``, one for every
+    axis, or InputError naming the gain, its value and the safe range."""
+    limits = gain_limits(robot)
+    checked = []
+    for name, value, unit, most in (
+        ("stiffness", stiffness, "N/m", limits.stiffness),
+        ("damping", damping, "N s/m", limits.damping),
+    ):
+        try:
+            x = float(value)
+        except (TypeError, ValueError):
+            raise InputError(f"{name} must be a number of {unit}, got {value!r}") from None
+        if not (math.isfinite(x) and 0.0 <= x <= most):
+            raise InputError(
+                f"{name} {x:g} {unit} is outside the safe range 0-{most:.4g} {unit} for "
+                f"{robot.name} ({_WHY[name]})"
+            )
+        checked.append(x)
+    return checked[0], checked[1]
+
+
+_WHY = {
+    "stiffness": f"{STIFFNESS_LIMIT:g} times its tracking preset",
+    "damping": f"damping x 1 ms / apparent mass at most {DAMPING_NUMBER:g}: more rings",
+}
+
+
 def _one_or_each(values: np.ndarray) -> float | tuple[float, ...]:
     values = np.asarray(values, dtype=float)
     if np.all(values == values[0]):
@@ -178,10 +229,14 @@ __all__ = [
     "DECLARED_PRESET",
     "REFERENCE_APPARENT_MASS",
     "REFERENCE_REACH",
+    "STIFFNESS_LIMIT",
     "ArmFigures",
+    "GainLimits",
     "arm_figures",
+    "check_live_gains",
     "current_rate_limits",
     "declared_preset",
     "derived_preset",
+    "gain_limits",
     "impedance_gains",
 ]

@@ -76,6 +76,7 @@ class CycleTimer:
         self._done = np.zeros_like(self._sent)
         self._deadline = np.zeros_like(self._sent)
         self.count = 0
+        self._missed = 0
         self.start_ns = time.perf_counter_ns()
         self.end_ns: int | None = None
         self.sim_time = 0.0
@@ -97,7 +98,10 @@ class CycleTimer:
         self._sent[k], self._recv[k], self._done[k] = sent_ns, recv_ns, done_ns
         self._deadline[k] = deadline_ns
         self.count = k + 1
-        return done_ns > deadline_ns
+        if done_ns > deadline_ns:
+            self._missed += 1
+            return True
+        return False
 
     def finish(self, sim_time: float = 0.0) -> None:
         """Mark the end of the run; ``sim_time`` s of robot (simulation) time elapsed."""
@@ -108,8 +112,14 @@ class CycleTimer:
     @property
     def missed(self) -> int:
         """Cycles whose next command was ready after their deadline."""
-        n = self.count
-        return int(np.count_nonzero(self._done[:n] > self._deadline[:n]))
+        return self._missed
+
+    def sends(self, start: int, stop: int) -> np.ndarray:
+        """The send stamps (ns, ``perf_counter_ns``) of cycles ``start`` to ``stop - 1``
+        (clipped to those recorded; a read-only view, for monitors)."""
+        view = self._sent[max(start, 0) : min(stop, self.count)]
+        view.flags.writeable = False
+        return view
 
     def summary(self) -> dict:
         """JSON-ready statistics (us; see module doc)."""

@@ -23,10 +23,10 @@ from jaxcomp.control.gains import VelocityGains
 from jaxcomp.control.impedance import (
     check_joint_vector,
     check_vector3,
-    inverse3,
     packed_size,
     unpack_state,
 )
+from jaxcomp.control.linalg import damped_pinv
 from jaxcomp.robot import Robot
 
 
@@ -55,7 +55,7 @@ def velocity_step_fn(robot: Robot, gains: VelocityGains, site: str | None = None
     """The pure (unjitted) step function; see ``VelocityController.step``."""
     tree, s = robot.tree, robot.site_index(robot.end_effector if site is None else site)
     posture, k_n, _, limit = gains.joint_arrays(robot)
-    k_p, lam2 = np.asarray(gains.gain), gains.pinv_damping**2 * np.eye(3)
+    k_p, lam2 = np.asarray(gains.gain), gains.pinv_damping**2
     clip, max_speed = gains.error_clip, gains.max_speed
 
     def step(q, target_pos, target_vel):
@@ -66,7 +66,7 @@ def velocity_step_fn(robot: Robot, gains: VelocityGains, site: str | None = None
         v = k_p * err + target_vel
         v = v * (max_speed / jnp.maximum(jnp.linalg.norm(v), max_speed))
         dq_null = k_n * (posture - q)
-        dq = dq_null + jac.T @ (inverse3(jac @ jac.T + lam2) @ (v - jac @ dq_null))
+        dq = dq_null + damped_pinv(jac, lam2) @ (v - jac @ dq_null)
         scale = 1.0 / jnp.maximum(jnp.max(jnp.abs(dq) / limit), 1.0)
         return dq * scale, VelocityDiagnostics(jnp.concatenate([pos, err, scale[None]]))
 
@@ -75,11 +75,11 @@ def velocity_step_fn(robot: Robot, gains: VelocityGains, site: str | None = None
 
 def velocity_packed_fn(step_fn, n: int):
     """``step_fn`` on the impedance controller's packed input (``impedance.packed_size``;
-    dq, prev and acc are unused) returning dq (n) | ``VelocityDiagnostics.data`` (7)."""
+    only q, pos and vel are used) returning dq (n) | ``VelocityDiagnostics.data`` (7)."""
 
     def packed(x):
-        q, _, _, pos, vel, _, _ = unpack_state(x, n, False)
-        dq, diag = step_fn(q, pos, vel)
+        s = unpack_state(x, n, False)
+        dq, diag = step_fn(s.q, s.pos, s.vel)
         return jnp.concatenate([dq, diag.data])
 
     return packed

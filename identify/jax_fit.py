@@ -52,11 +52,13 @@ robot's compiled model (not its name or file), so an edited model never reuses s
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import cached_property, partial
 from typing import NamedTuple
@@ -734,7 +736,7 @@ CURE = (
 
 
 def _params(
-    model: FitModel, rec: Recording, sol: Solution, phase, phase_std, seconds: float
+    model: FitModel, name: str, sol: Solution, phase, phase_std, seconds: float
 ) -> RobotParams:
     sol = jax.tree.map(np.asarray, sol)
     if not bool(sol.converged) or not np.all(np.isfinite(sol.ratio)):
@@ -749,7 +751,7 @@ def _params(
     names = model.parameter_names()
     joints = arm_joint_names(model.robot)
     return RobotParams(
-        model=rec.model,
+        model=name,
         ratio=sol.ratio,
         friction=np.abs(sol.friction),
         com_offset={link: com[i] for i, link in enumerate(model.links)},
@@ -844,13 +846,14 @@ def fit(
         st = st + other[0]
     sol = jax.block_until_ready(solve(_key(model), st, max_iter))
     _, coef, m = prepared[0]
-    return _result(model, recs[0], sol, coef, m.joint, time.perf_counter() - start)
+    return _result(model, recs[0].model, sol, coef, m.joint, time.perf_counter() - start)
 
 
-def _result(model, rec, sol, coef, joint, seconds) -> RobotParams:
+def _result(model, name, sol, coef, joint, seconds) -> RobotParams:
+    """The ``RobotParams`` of a solution, for recordings of the robot model ``name``."""
     cov = np.asarray(sol.cov)[_LIN * model.n :, _LIN * model.n :]
     phase, phase_std = phase_shift(model, coef, joint, np.asarray(sol.com), cov)
-    return _params(model, rec, sol, phase, phase_std, seconds)
+    return _params(model, name, sol, phase, phase_std, seconds)
 
 
 @partial(jax.jit, static_argnums=(0, 2, 3))
@@ -901,15 +904,20 @@ def fit_each(
     """Fit every recording on its own, ``batch`` at a time in one vmapped computation on the
     default backend (a GPU when present): moments, statistics and fit of a batch in one call.
 
-    ``batch``: recordings per call (default 256 on an accelerator, 8 on a CPU). ``workers``:
-    host threads that pack the recordings (``_GROUP`` to a transfer) and send them to the
-    device while the device fits the batch before (default: up to 8 on an accelerator, where
-    more only contend for host memory bandwidth; 1 on a CPU). ``com_prior``: m, as ``fit``'s.
-    Raises
-    ``FitError`` naming the recordings whose fit did not converge (no result then).
+    The host reads (``recordings`` may be a generator that loads them), checks and packs a
+    batch while the device fits the two before; the device's program is loaded (or traced and
+    compiled) for a batch like the first recording while the rest of the first batch is read,
+    and a recording is let go once packed.
+
+    ``batch``: recordings per call (default 256 on an accelerator; 4 on a CPU, where a smaller
+    batch maps less fresh memory and starts the device sooner). ``workers``: host threads that
+    pack the recordings (``_GROUP`` to a transfer) and send them to the device (default: up to
+    8 on an accelerator, where more only contend for host memory bandwidth; 1 on a CPU).
+    ``com_prior``: m, as ``fit``'s. Raises ``FitError`` naming the recordings whose fit did not
+    converge (no result then).
     """
     accelerated = not on_cpu()
-    batch = int(batch or (256 if accelerated else 8))
+    batch = int(batch or (256 if accelerated else 4))
     workers = max(1, int(workers or (min(8, os.cpu_count() or 1) if accelerated else 1)))
     group = min(_GROUP, batch)
     local = threading.local()
@@ -917,54 +925,84 @@ def fit_each(
     failed: list[int] = []
     model: FitModel | None = None
     name = None  # the recordings' model
+    robots: dict[tuple, Robot] = {}  # each recording's robot, by its model and joints
+    buffers: dict[tuple[int, int], PackBuffer] = {}  # a CPU's, by batch parity and group
     bar = tqdm(desc="fitting", unit="rec", disable=not progress)
 
-    def send(recs: list[Recording]) -> tuple[Packed, int]:
-        # on a CPU the device array may alias the host buffer: no reuse there
-        if accelerated and not hasattr(local, "buffer"):
-            local.buffer = PackBuffer()
-        packed, length = pack(recs, local.buffer if accelerated else None)
+    def send(item: tuple[tuple[int, int], list[Recording]]) -> tuple[Packed, int]:
+        which, recs = item
+        if accelerated:  # copied to the device: each thread packs into its own buffer again
+            buffer = local.__dict__.setdefault("buffer", PackBuffer())
+        else:  # the device array aliases the buffer: packed into again two batches later, once
+            # the batch that used it is fitted (fresh memory costs a page fault per 4 kB)
+            buffer = buffers.setdefault(which, PackBuffer())
+        packed, length = pack(recs, buffer)
         return jax.block_until_ready(jax.device_put(packed)), length
 
-    def finish(chunk: list[Recording], result, start: float) -> None:
-        sols, coef, joint, count = jax.tree.map(np.asarray, result)
+    def finish(names: list[str], result: Future, start: float) -> None:
+        sols, coef, joint, count = jax.tree.map(np.asarray, result.result())
         joint = np.where(count > 0, joint, -1)
-        seconds = (time.perf_counter() - start) / len(chunk)
-        for i, rec in enumerate(chunk):
+        seconds = (time.perf_counter() - start) / len(names)
+        for i, recorded in enumerate(names):
             sol = jax.tree.map(lambda a, i=i: a[i], sols)
             try:
-                out.append(_result(model, rec, sol, coef[i], joint[i], seconds))
+                out.append(_result(model, recorded, sol, coef[i], joint[i], seconds))
             except FitError:
                 failed.append(len(out) + len(failed))
-        bar.update(len(chunk))
+        bar.update(len(names))
 
-    pending, seen = None, 0
-    with ThreadPoolExecutor(workers) as pool:
-        for chunk in _chunks(recordings, batch):
-            if model is None:
-                name = chunk[0].model
-                model = fit_model(name, com_prior)
+    def program(packed, length: int) -> Callable:
+        return traced.program(
+            "fit_packed",
+            repr((model._identity, length, not accelerated)),
+            partial(_fit_packed, model, length=length, sequential=not accelerated),
+            (packed,),
+            (Packed, Solution),
+        )
+
+    def load(rec: Recording) -> None:  # the program for a batch of recordings like ``rec``
+        packed, length = pack([rec])
+        if not accelerated:  # and the pack buffers' memory, mapped ahead of the first packs
+            for which in itertools.product((0, 1), range(-(-batch // group))):
+                buffers.setdefault(which, PackBuffer()).take(group, *packed.samples.shape[1:], True)
+        like = jax.tree.map(lambda a: jax.ShapeDtypeStruct((batch, *a.shape[1:]), a.dtype), packed)
+        program(like, length)
+
+    def run(packed, length: int):  # the batch's results, asynchronously
+        return program(packed, length)(packed)
+
+    pending: deque = deque()  # (names, result, start) of the batches not finished yet
+    seen = 0
+    stream = iter(recordings)
+    first = next(stream, None)
+    # the device thread loads the kept program and starts each batch's fit (asynchronous)
+    # while this one reads (``recordings`` may be a generator), checks and packs the next ones
+    with ThreadPoolExecutor(workers) as pool, ThreadPoolExecutor(1) as device:
+        if first is not None:
+            name = first.model
+            model = fit_model(name, com_prior)
+            device.submit(load, first)  # while the rest of the first batch is read
+            stream = itertools.chain([first], stream)
+            del first
+        for k, chunk in enumerate(_chunks(stream, batch)):
             if any(r.model != name for r in chunk):
                 raise InputError("fit_each needs recordings of one robot model")
             for i, rec in enumerate(chunk):
-                if problems := recording_problems([rec]):
+                if (rec.model, rec.joints) not in robots:
+                    robots[rec.model, rec.joints] = rec.robot()
+                if problems := recording_problems([rec], robots[rec.model, rec.joints]):
                     raise InputError(f"recording {seen + i}: {'; '.join(problems)}")
             seen += len(chunk)
+            while len(pending) > 1 or (pending and pending[0][1].done()):
+                finish(*pending.popleft())  # the batch two before: its pack buffer is free
             start = time.perf_counter()
-            groups = [chunk[i : i + group] for i in range(0, len(chunk), group)]
+            groups = [((k % 2, i), chunk[i : i + group]) for i in range(0, len(chunk), group)]
             packed, length = _join(list(pool.map(send, groups)), batch)
-            result = traced.call(  # async: the device runs it while the host finishes the last
-                "fit_packed",
-                repr((model._identity, length, not accelerated)),
-                partial(_fit_packed, model, length=length, sequential=not accelerated),
-                (packed,),
-                (Packed, Solution),
-            )
-            if pending is not None:
-                finish(*pending)
-            pending = (chunk, result, start)
-        if pending is not None:
-            finish(*pending)
+            result = device.submit(run, packed, length)
+            pending.append(([r.model for r in chunk], result, start))
+            del chunk, groups  # the samples are packed: the recordings can go
+        while pending:
+            finish(*pending.popleft())
     bar.close()
     if model is None:
         raise InputError("no recording to fit")

@@ -15,10 +15,11 @@ least-squares fit of Eq. (13) (plus a viscous term in v) on that sweep needs: th
 touches the samples again.
 
 Two steps: ``pack`` (host, pure data movement) copies t, the swept joint's dq and current and
-every joint's q of every pass back to back; the reduction (JAX, jitted, on the default backend:
-a GPU reduces thousands of recordings at once) finds the steady samples
-(``identify.bins.steady``'s rule), their mean pose and the moments. The median speed of a pass
-takes every ``MEDIAN_STRIDE``-th sample.
+every joint's q of every pass back to back, each pass from the start of a block of ``BLOCK``
+samples; the reduction (JAX, jitted, on the default backend: a GPU reduces thousands of
+recordings at once) finds the steady samples (``identify.bins.steady``'s rule), their mean pose
+and the moments, block by block: no gathers of samples, and passes padded only to whole blocks.
+The median speed of a pass takes every ``MEDIAN_STRIDE``-th sample.
 
 Streaming (``stream_plan``, ``stream_add``, ``streamed_moments``): the same sums added sample by
 sample while a simulation runs (the MJX studies, on the device), with the steady samples chosen
@@ -28,6 +29,8 @@ commanded pose and moved to the held pose at the end, exactly (u is affine in th
 
 from __future__ import annotations
 
+import mmap
+import threading
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -198,6 +201,9 @@ def stack_worlds(parts: Sequence[SweepMoments]) -> SweepMoments:
 # ------------------------------------------------------------------------ packing (host)
 #: Rows of ``Packed.samples`` before the joints' angles: t, the swept joint's dq and current.
 _ROWS = 3
+#: Samples per block: every pass starts a block (the reduction sums block by block).
+BLOCK = 512
+_GROUP = 64  # blocks whose moments are formed at once
 _PASS_BUCKET = 1024  # samples: pass lengths round up to this (few compiled shapes)
 _SAMPLE_BUCKET = 1 << 15
 _SWEEP_BUCKET = 8
@@ -214,9 +220,11 @@ class Packed(NamedTuple):
 
     S sweeps of up to two passes (slot 0 the first, slot 1 the return). samples (3 + n, N):
     t s, the swept joint's dq rad/s and current A, then q rad of every joint, the passes back to
-    back, zero-padded. start, length (S, 2) int: where each pass begins in samples, and its
-    sample count (0: no such pass). direction (S, 2) float, +1 / -1 (0: no pass). joint (S,)
-    int, the swept joint. gravity (3,) m/s^2, payload_mass kg, payload_com (3,) m.
+    back, each from the start of a block of ``BLOCK`` samples (N a multiple of it); samples
+    outside passes hold any finite values. start, length (S, 2) int: where each pass begins in
+    samples (a multiple of ``BLOCK``), and its sample count (0: no such pass). direction (S, 2)
+    float, +1 / -1 (0: no pass). joint (S,) int, the swept joint. gravity (3,) m/s^2,
+    payload_mass kg, payload_com (3,) m.
     """
 
     samples: np.ndarray
@@ -242,11 +250,15 @@ class Layout(NamedTuple):
     length: np.ndarray
     direction: np.ndarray
 
+    def blocks(self) -> np.ndarray:
+        """(S, 2) int: the samples each pass takes in the packed form, whole blocks."""
+        return -(-self.length // BLOCK) * BLOCK
+
     def sizes(self) -> tuple[int, int, int]:
         """Bucketed (S sweeps, N samples, L pass length) of the packed form."""
         return (
             _up(self.joint.size, _SWEEP_BUCKET),
-            _up(int(self.length.sum()), _SAMPLE_BUCKET),
+            _up(int(self.blocks().sum()), _SAMPLE_BUCKET),
             _up(int(self.length.max(initial=1)), _PASS_BUCKET),
         )
 
@@ -281,19 +293,37 @@ def layout(joint: np.ndarray, direction: np.ndarray) -> Layout:
     return Layout(np.array([j for j, _ in sweeps], np.int64), first, length, sign)
 
 
+def _fresh_zeros(shape: tuple[int, ...]) -> np.ndarray:
+    """Zeros (float64) of ``shape`` in fresh anonymous memory: page-aligned, so that XLA's CPU
+    client uses it in place (it copies host memory not aligned to 64 bytes; numpy aligns to
+    16), and in small pages: numpy asks Linux for huge pages for a large array, and the first
+    ones cost ~0.4 s per 100 MB on the 2-core test machine (memory compacted first) against
+    0.07 s here."""
+    count = int(np.prod(shape))
+    memory = mmap.mmap(-1, max(count * 8, 1))  # zero-filled by the kernel as it is touched
+    return np.frombuffer(memory, np.float64, count).reshape(shape)
+
+
 class PackBuffer:
-    """A host buffer that ``pack`` reuses from call to call (one per thread): writing into
-    memory already mapped is several times faster than into fresh pages."""
+    """A host buffer that ``pack`` reuses from call to call (one pack at a time): writing into
+    memory already mapped is several times faster than into fresh pages. Aligned for XLA: on a
+    CPU the device array of a pack aliases it."""
 
     def __init__(self) -> None:
         self._samples = np.zeros((0, 0, 0))
+        self._lock = threading.Lock()
 
-    def take(self, k: int, rows: int, N: int) -> np.ndarray:
+    def take(self, k: int, rows: int, N: int, touch: bool = False) -> np.ndarray:
         """A view (k, rows, N) with arbitrary finite contents (of the array from before when
-        it is large enough)."""
-        if any(a < b for a, b in zip(self._samples.shape, (k, rows, N), strict=True)):
-            self._samples = np.zeros((k, rows, N))
-        return self._samples[:k, :rows, :N]
+        it is large enough). ``touch``: map fresh memory now (another thread may, ahead of the
+        pack)."""
+        with self._lock:
+            if any(a < b for a, b in zip(self._samples.shape, (k, rows, N), strict=True)):
+                samples = _fresh_zeros((k, rows, N))
+                if touch:
+                    samples.fill(0.0)
+                self._samples = samples
+            return self._samples[:k, :rows, :N]
 
 
 def _meta(lays: Sequence[Layout], S: int) -> dict[str, np.ndarray]:
@@ -304,8 +334,8 @@ def _meta(lays: Sequence[Layout], S: int) -> dict[str, np.ndarray]:
     out["joint"] = np.zeros((k, S), np.int64)
     for i, lay in enumerate(lays):
         m = lay.joint.size
-        ends = np.cumsum(lay.length.ravel()).reshape(-1, 2)
-        out["start"][i, :m] = ends - lay.length
+        taken = lay.blocks()
+        out["start"][i, :m] = np.cumsum(taken.ravel()).reshape(-1, 2) - taken
         out["length"][i, :m] = lay.length
         out["direction"][i, :m] = lay.direction
         out["joint"][i, :m] = lay.joint
@@ -319,18 +349,20 @@ def current_pose(q: np.ndarray, dq: np.ndarray, lag: float) -> np.ndarray:
 
 
 def _fill(lay: Layout, t, q, dq, current, samples: np.ndarray) -> None:
-    """Copy the passes of ``lay`` into ``samples`` (..., 3 + n, N), in packed order; ``q``,
-    ``dq``, ``current`` (..., T, n) and ``t`` (T,) of one recording or of worlds that share the
-    layout (a leading axis). Slice copies, no index arrays."""
+    """Copy the passes of ``lay`` into ``samples`` (..., 3 + n, N), in packed order (each pass
+    from the start of a block); ``q``, ``dq``, ``current`` (..., T, n) and ``t`` (T,) of one
+    recording or of worlds that share the layout (a leading axis). Slice copies, no index
+    arrays."""
     at = 0
-    for j, first, length in zip(lay.joint.tolist(), lay.first, lay.length, strict=True):
-        for f, m in zip(first.tolist(), length.tolist(), strict=True):
+    taken = lay.blocks().tolist()
+    for s, j in enumerate(lay.joint.tolist()):
+        for f, m, k in zip(lay.first[s].tolist(), lay.length[s].tolist(), taken[s], strict=True):
             part = slice(f, f + m)
             samples[..., 0, at : at + m] = t[part]
             samples[..., 1, at : at + m] = dq[..., part, j]
             samples[..., 2, at : at + m] = current[..., part, j]
             samples[..., _ROWS:, at : at + m] = np.swapaxes(q[..., part, :], -1, -2)
-            at += m
+            at += k
 
 
 def pack(recs: Sequence[Recording], buffer: PackBuffer | None = None) -> tuple[Packed, int]:
@@ -404,43 +436,93 @@ def _median(x: jax.Array, keep: jax.Array, axis: int = -1) -> jax.Array:
     return jnp.squeeze(jnp.where(c > 0, 0.5 * (lo + hi), jnp.nan), axis)
 
 
-def _mean(x: jax.Array, keep: jax.Array) -> jax.Array:
-    """Mean of ``x`` over its last axis where ``keep`` (kept dims; 0 where none is kept)."""
-    count = jnp.sum(keep, axis=-1, keepdims=True)
-    return jnp.sum(jnp.where(keep, x, 0.0), axis=-1, keepdims=True) / jnp.maximum(count, 1)
+def _in_memory(x: jax.Array) -> jax.Array:
+    """``x`` (2, ...), computed once into memory. XLA's CPU backend fuses a value into every
+    row of a concatenation that uses it and computes it again for each: sin and cos of the swept
+    angle, used by 2 (n + 1) rows of the moments' features, would cost 14 sines a sample. The
+    operands of a product with the identity (a dot) are computed into memory; the product
+    itself is 4 flops a sample."""
+    return jnp.einsum("ij,j...->i...", jnp.eye(2, dtype=x.dtype), x)
 
 
 def reduce_packed(p: Packed, L: int, fraction: float, trim: float) -> SweepMoments:
-    """Sweep moments of one packed recording, its passes padded to ``L`` samples (pure,
+    """Sweep moments of one packed recording, its longest pass at most ``L`` samples (pure,
     vmap-able; ``packed_moments`` runs it on a stack). ``fraction`` and ``trim``: see
-    ``identify.bins.steady``."""
-    n = p.samples.shape[0] - _ROWS
-    off = jnp.arange(L)
-    valid = off < p.length[..., None]  # (S, 2, L)
-    idx = jnp.minimum(p.start[..., None] + off, p.samples.shape[-1] - 1)
-    t, rate, current = (p.samples[k][idx] for k in range(_ROWS))
-    q = jnp.moveaxis(p.samples[_ROWS:][:, idx], 0, -1)  # (S, 2, L, n)
-    swept = jax.nn.one_hot(p.joint, n, dtype=q.dtype)[:, None, None, :]  # (S, 1, 1, n)
-    theta = jnp.sum(q * swept, axis=-1)
-    d = p.direction[..., None]
-    speed = rate * d  # along the pass's direction
-    sub = slice(None, None, MEDIAN_STRIDE)  # the medians are over every MEDIAN_STRIDE-th sample
-    # the pass speed: the mean over the samples at >= ``fraction`` of the median speed (the
-    # median alone may fall on a ramp when a pass has few samples)
-    median = _median(speed[..., sub], valid[..., sub])[..., None]  # (S, 2, 1)
-    ref = _mean(speed, valid & (speed >= fraction * median) & (median > 0))
+    ``identify.bins.steady``.
+
+    Block by block (``BLOCK`` samples, each of one pass or none): per-pass sums are sums over
+    blocks, and the moments are one small matrix product per block.
+    """
+    rows, N = p.samples.shape
+    n = rows - _ROWS
+    S = p.joint.shape[0]
+    x = p.samples.reshape(rows, N // BLOCK, BLOCK)
+    # (nb, BLOCK) each; the angles row by row (a slice of them all would be copied)
+    t, rate, current, q = x[0], x[1], x[2], [x[_ROWS + i] for i in range(n)]
+    first, length, sign = (a.reshape(-1) for a in (p.start, p.length, p.direction))  # (2 S,)
+    at = jnp.arange(N // BLOCK) * BLOCK
+    member = (at[:, None] >= first) & (at[:, None] < first + length)  # (nb, 2 S): its pass
+    of = member.astype(t.dtype)
+    k = jnp.argmax(member, axis=1)  # (nb,) the block's pass (any one for a block of none)
+    valid = jnp.any(member, axis=1)[:, None] & (
+        (at - first[k])[:, None] + jnp.arange(BLOCK) < length[k][:, None]
+    )
+
+    def total(x: jax.Array, keep: jax.Array) -> jax.Array:  # (2 S,) sums over each pass
+        return jnp.sum(jnp.where(keep, x, 0.0), axis=1) @ of
+
+    def mean(x: jax.Array, keep: jax.Array) -> jax.Array:  # (2 S,), 0 where none is kept
+        return total(x, keep) / jnp.maximum(total(1.0, keep), 1.0)
+
+    speed = rate * sign[k][:, None]  # along the pass's direction
+    # the pass speed: the mean over the samples at >= ``fraction`` of the median speed of every
+    # MEDIAN_STRIDE-th sample (the median alone may fall on a ramp when a pass has few samples)
+    sub = jnp.arange(0, L, MEDIAN_STRIDE)
+    strided = p.samples[1][jnp.minimum(first[:, None] + sub, N - 1)] * sign[:, None]
+    median = _median(strided, sub < length[:, None])[k][:, None]  # (nb, 1)
+    ref = mean(speed, valid & (speed >= fraction * median) & (median > 0))[k][:, None]
     fast = valid & (jnp.abs(speed - ref) <= (1.0 - fraction) * ref) & (ref > 0)
-    lo = jnp.min(jnp.where(fast, t, jnp.inf), axis=-1, keepdims=True)
-    hi = jnp.max(jnp.where(fast, t, -jnp.inf), axis=-1, keepdims=True)
+    lo = jnp.min(jnp.where(fast, t, jnp.inf), axis=1)[:, None]  # (nb, 1), then over the pass
+    hi = jnp.max(jnp.where(fast, t, -jnp.inf), axis=1)[:, None]
+    lo = jnp.min(jnp.where(member, lo, jnp.inf), axis=0)[k][:, None]
+    hi = jnp.max(jnp.where(member, hi, -jnp.inf), axis=0)[k][:, None]
     steady = fast & (t > lo + trim) & (t < hi - trim)
-    v = d * _mean(speed, steady)
-    w = steady.astype(q.dtype)[..., None]
-    count = jnp.sum(steady, axis=(1, 2))
-    hold = jnp.sum(q * w, axis=(1, 2)) / jnp.maximum(count, 1)[:, None]  # (S, n)
-    dh = (q - hold[:, None, None, :]) * (1.0 - swept)  # (S, 2, L, n), 0 for the swept joint
-    phi = features(theta, dh, current) * w  # (S, 2, L, Z + 1)
-    G = jnp.einsum("skla,sklb->skab", phi, phi)  # (S, 2, Z + 1, Z + 1)
-    moments = assemble(G, d[..., 0], v[..., 0], n)
+    v = sign * mean(speed, steady)  # (2 S,) rad/s
+    w = steady.astype(t.dtype)
+    count = jnp.round(total(1.0, steady)).astype(int).reshape(S, 2).sum(axis=1)
+    held = (jnp.stack([jnp.sum(qi * w, axis=1) for qi in q]) @ of).reshape(n, S, 2).sum(axis=2)
+    hold = held.T / jnp.maximum(count, 1)[:, None]  # (S, n)
+    sweep = k // 2
+    joint = p.joint[sweep]  # (nb,) the block's swept joint
+    at_hold = hold[sweep]  # (nb, n)
+
+    def moments_of(first: jax.Array) -> jax.Array:  # (_GROUP, Z + 1, Z + 1) of _GROUP blocks
+        def part(x: jax.Array, axis: int = 0) -> jax.Array:
+            return jax.lax.dynamic_slice_in_dim(x, first, size, axis)
+
+        qg, wg, cg, jg, hg = (
+            [part(qi) for qi in q],
+            part(w),
+            part(current),
+            part(joint),
+            part(at_hold),
+        )
+        theta = sum(qi * (jg == i)[:, None] for i, qi in enumerate(qg))  # the swept angle
+        trig = _in_memory(jnp.stack([jnp.sin(theta), jnp.cos(theta)]))
+        # u w = [1, dh] w, dh = q - hold and 0 for the swept joint; z = [sin u, cos u, u]
+        uw = [wg] + [(qi - hg[:, i, None]) * ((jg != i)[:, None] * wg) for i, qi in enumerate(qg)]
+        # the rows of ``features`` times w, built row by row (CPU memory); ``assemble`` forms
+        # the moments from G, the sums of phi phi^T over the steady samples
+        rows = [trig[0] * r for r in uw] + [trig[1] * r for r in uw] + uw + [cg * wg]
+        phi = jnp.stack(rows, axis=1)  # (blocks, Z + 1, BLOCK): a matrix product per block
+        return jnp.einsum("nab,ncb->nac", phi, phi)
+
+    # a group of blocks at a time: the features of every sample never take memory at once
+    nb = N // BLOCK
+    size = _GROUP if nb % _GROUP == 0 else nb
+    G = jax.lax.map(moments_of, jnp.arange(0, nb, size)).reshape(nb, 3 * n + 4, 3 * n + 4)
+    G = jnp.einsum("np,nac->pac", of, G).reshape(S, 2, *G.shape[1:])  # (S, 2, Z + 1, Z + 1)
+    moments = assemble(G, p.direction, v.reshape(S, 2), n)
     return SweepMoments(
         joint=p.joint,
         hold=hold,
@@ -454,7 +536,8 @@ def reduce_packed(p: Packed, L: int, fraction: float, trim: float) -> SweepMomen
 
 def reduce_batch(p: Packed, L: int, fraction: float, trim: float, sequential: bool) -> SweepMoments:
     """``reduce_packed`` over the leading axis of ``p``: vmapped, or one recording after
-    another with ``sequential`` (twice as fast on a CPU, where batched gathers are slow)."""
+    another with ``sequential`` (on a CPU: the temporaries of one recording rather than of the
+    batch, whose fresh memory cost as much system time as the reduction took)."""
 
     def one(x: Packed) -> SweepMoments:
         return reduce_packed(x, L, fraction, trim)
@@ -475,7 +558,7 @@ def on_cpu() -> bool:
 def packed_moments(
     packed: Packed, length: int, fraction: float = STEADY_FRACTION, trim: float = STEADY_TRIM
 ) -> SweepMoments:
-    """Device ``SweepMoments`` of stacked ``pack``ed recordings (passes padded to ``length``
+    """Device ``SweepMoments`` of stacked ``pack``ed recordings (passes of at most ``length``
     samples; a leading axis on every field), on their bucketed sweeps: padding sweeps have
     zero count."""
     return _packed_moments(packed, length, fraction, trim, on_cpu())

@@ -17,7 +17,7 @@ shifted, when needed, to continue after the samples already recorded.
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -140,6 +140,7 @@ def record(
     progress: bool = True,
     resume: bool = False,
     settings: Mapping[str, Any] | None = None,
+    on_state: Callable[[ArmState, float], None] | None = None,
 ) -> Recording:
     """Record ``plan`` on ``arm`` into the recording ``path`` (``.npz``) and return it.
 
@@ -158,6 +159,8 @@ def record(
             plan, model, joints or settings differ).
         settings: whatever else must match for a resume (e.g. the simulator's seed and
             truth), a JSON-able mapping kept beside the part files.
+        on_state: called with every state recorded and the fraction of the plan's samples
+            done (0-1), e.g. for a progress display; keep it quick (it runs every 1 ms).
 
     On any exception (KeyboardInterrupt included) the finished sweeps are joined into
     ``path``, a loadable recording, and stay in the part files for a resume; the exception
@@ -209,8 +212,10 @@ def record(
     offset = 0.0 if last is None or state.t + arm.dt > last else last - state.t
     from tqdm.auto import tqdm
 
+    total = plan.samples(state.q, todo)
+    done_samples = 0
     bar = tqdm(
-        total=plan.samples(state.q, todo),
+        total=total,
         disable=not progress,
         unit="sample",
         unit_scale=True,
@@ -218,11 +223,15 @@ def record(
     )
 
     def recorder(joint: int, direction: int):
-        def on_state(s: ArmState) -> None:
+        def on_sample(s: ArmState) -> None:
+            nonlocal done_samples
             writer.append(s.t + offset, s.q, s.dq, s.current, joint, direction)
             bar.update()
+            done_samples += 1
+            if on_state is not None:
+                on_state(s, min(done_samples / max(total, 1), 1.0))
 
-        return on_state
+        return on_sample
 
     try:
         current = None

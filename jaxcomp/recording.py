@@ -15,7 +15,9 @@ One ``.npz``, SI units, n = the robot's current-controlled joints:
   computed one 1 kHz cycle before the pose they report, 1 ms.
 
 Any further array whose first axis has length N (the controller adds ``target``, ``ee``,
-``base``, ``command``) is kept in ``Recording.extra``. Loading validates everything and raises
+``base``, ``command``, and the impedance controller its external force estimate
+``current_model``, ``wrench``, ``wrench_band``: ``jaxcomp.control.loop``) is kept in
+``Recording.extra``. Loading validates everything and raises
 one ``InputError`` naming the field; nothing is silently dropped.
 
 ``RecordingWriter`` writes a recording incrementally: samples go to numbered part files in
@@ -31,7 +33,7 @@ from __future__ import annotations
 
 import json
 import shutil
-from collections.abc import Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,6 +43,7 @@ import numpy as np
 from jaxcomp.constants import STANDARD_GRAVITY
 from jaxcomp.errors import InputError, JaxcompError, ModelError
 from jaxcomp.files import atomic_output, reading, writing
+from jaxcomp.npz import read_npz
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import arm_joint_indices, write_json_atomic
 
@@ -155,8 +158,8 @@ def _numeric(data: Mapping, name: str, shape: tuple, kind: str = "float") -> np.
         if arr.dtype.kind == "f":
             if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
                 raise InputError(f"recording field {name!r} must hold integers")
-        return arr.astype(np.int64)
-    arr = arr.astype(np.float64)
+        return arr.astype(np.int64, copy=False)
+    arr = arr.astype(np.float64, copy=False)
     bad = ~np.isfinite(arr)
     if bad.any():
         if arr.ndim == 0:
@@ -170,7 +173,7 @@ def _numeric(data: Mapping, name: str, shape: tuple, kind: str = "float") -> np.
 
 
 def _degrees_hint(name: str, arr: np.ndarray, limit: float, unit: str) -> None:
-    peak = float(np.abs(arr).max()) if arr.size else 0.0
+    peak = max(float(arr.max()), -float(arr.min())) if arr.size else 0.0
     if peak > limit:
         raise InputError(
             f"recording field {name!r} reaches {peak:.4g}, beyond {limit:.3g} {unit}: it looks "
@@ -179,20 +182,25 @@ def _degrees_hint(name: str, arr: np.ndarray, limit: float, unit: str) -> None:
 
 
 def validate(
-    data: Mapping[str, Any], source: str = "recording", require_sweep: bool = True
+    data: Mapping[str, Any],
+    source: str = "recording",
+    require_sweep: bool = True,
+    robots: dict[tuple, Robot] | None = None,
 ) -> Recording:
-    """A ``Recording`` from a mapping of fields (e.g. an opened ``.npz``), fully checked.
+    """A ``Recording`` from a mapping of fields (e.g. an opened ``.npz``), fully checked; an
+    array already of its field's dtype (float64, int64) is kept, not copied.
 
     ``require_sweep``: refuse a recording without any swept sample (what identification
-    needs); a controller's log has none.
+    needs); a controller's log has none. ``robots``: the robots of recordings checked before,
+    by model and joints, kept and reused (``load_recordings``).
     """
     try:
-        return _validate(data, require_sweep)
+        return _validate(data, require_sweep, {} if robots is None else robots)
     except JaxcompError as exc:
         raise type(exc)(f"{source}: {exc}") from None
 
 
-def _validate(data: Mapping[str, Any], require_sweep: bool) -> Recording:
+def _validate(data: Mapping[str, Any], require_sweep: bool, robots: dict) -> Recording:
     if "model" not in data:
         raise InputError("recording field 'model' is missing")
     model = np.asarray(data["model"])
@@ -202,11 +210,13 @@ def _validate(data: Mapping[str, Any], require_sweep: bool) -> Recording:
         raise InputError("recording field 'model' must be a non-empty string")
     model = str(model)
     joints = _joint_names(data)
-    try:
-        robot = load_robot(model, joints=joints)
-    except ModelError as exc:
-        fields = "field 'model'" if joints is None else "field 'model' (with 'joints')"
-        raise InputError(f"recording {fields}: {exc}") from None
+    if (model, joints) not in robots:
+        try:
+            robots[model, joints] = load_robot(model, joints=joints)
+        except ModelError as exc:
+            fields = "field 'model'" if joints is None else "field 'model' (with 'joints')"
+            raise InputError(f"recording {fields}: {exc}") from None
+    robot = robots[model, joints]
     n = len(arm_joint_indices(robot))
     t = _numeric(data, "t", (None,))
     N = t.shape[0]
@@ -221,13 +231,15 @@ def _validate(data: Mapping[str, Any], require_sweep: bool) -> Recording:
         i = int(np.flatnonzero(np.diff(t) <= 0)[0])
         raise InputError(f"recording field 't' must increase; it does not at index {i + 1}")
     hinge = np.asarray(robot.tree.is_hinge)[arm_joint_indices(robot)]
-    _degrees_hint("q", q[:, hinge], _MAX_ANGLE, "rad")
-    steps = np.diff(q[:, hinge], axis=0)
-    moved = np.abs(steps).sum()
+    qh, dqh = (q, dq) if hinge.all() else (q[:, hinge], dq[:, hinge])  # no copy for an arm
+    _degrees_hint("q", qh, _MAX_ANGLE, "rad")
+    steps = np.diff(qh, axis=0)  # in place from here: these are the large arrays
+    moved = np.abs(steps, out=steps).sum()
     if moved > 0:
         # dq in deg/s shows as |dq| ~57x the finite-difference velocity of q
-        fd = np.abs(steps / np.diff(t)[:, None]).sum()
-        ratio = np.abs(0.5 * (dq[1:, hinge] + dq[:-1, hinge])).sum() / max(fd, 1e-300)
+        fd = np.divide(steps, np.diff(t)[:, None], out=steps).sum()
+        mean = np.add(dqh[1:], dqh[:-1])
+        ratio = 0.5 * np.abs(mean, out=mean).sum() / max(fd, 1e-300)
         if 20 < ratio < 200:
             raise InputError(
                 f"recording field 'dq' is {ratio:.0f}x the rate of change of q: it looks like "
@@ -309,21 +321,31 @@ def _joint_names(data: Mapping[str, Any]) -> tuple[str, ...] | None:
     return tuple(str(x) for x in names)
 
 
-def load_recording(path: str | Path, require_sweep: bool = True) -> Recording:
+def load_recordings(paths: Iterable[str | Path], require_sweep: bool = True) -> Iterator[Recording]:
+    """``load_recording`` of each path in turn, as the caller asks for them; recordings of one
+    model (and joints) share one robot, looked up once."""
+    robots: dict[tuple, Robot] = {}
+    for path in paths:
+        yield load_recording(path, require_sweep, robots)
+
+
+def load_recording(
+    path: str | Path, require_sweep: bool = True, robots: dict[tuple, Robot] | None = None
+) -> Recording:
     """Read and validate a recording ``.npz``; ``InputError`` naming the problem otherwise.
 
-    ``require_sweep=False`` also accepts recordings without sweeps (controller logs)."""
+    ``require_sweep=False`` also accepts recordings without sweeps (controller logs).
+    ``robots``: see ``validate``."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"recording not found: {path}")
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            data = {k: npz[k] for k in npz.files}
+        data = read_npz(path)
     except (OSError, ValueError, EOFError) as exc:
         raise InputError(f"{path}: not a readable .npz recording ({exc})") from None
     except Exception as exc:  # zipfile.BadZipFile and friends from a truncated file
         raise InputError(f"{path}: not a readable .npz recording ({exc})") from None
-    return validate(data, str(path), require_sweep)
+    return validate(data, str(path), require_sweep, robots)
 
 
 # --------------------------------------------------------------------- incremental writing

@@ -131,7 +131,7 @@ def test_tracking_gains_match_pinocchio_and_packed_step_matches_step(robot, para
         np.testing.assert_allclose(cur, cur_p, rtol=0, atol=1e-9)
         np.testing.assert_allclose(diag.data, diag_p.data, rtol=0, atol=1e-9)
         out = np.asarray(ctrl.packed_step(ctrl.pack(q, dq, prev, target, vel, acc)))
-        assert ctrl.packed_size == 27 and out.shape == (6 + 34,)  # current | diagnostics
+        assert ctrl.packed_size == 40 and out.shape == (6 + 46,)  # current | diagnostics
         np.testing.assert_allclose(out[:6], cur, rtol=0, atol=1e-12)
         np.testing.assert_allclose(out[6:], diag.data, rtol=0, atol=1e-12)
 
@@ -359,7 +359,7 @@ def test_velocity_controller_converges_in_kinematic_simulation(robot):
     assert np.all(np.abs(np.asarray(dq)) <= limit + 1e-12)
     with pytest.raises(InputError, match="target_pos"):
         ctrl.check_state(q, [0.0, np.nan, 0.0])
-    x = np.concatenate([q, np.zeros(12), target, np.zeros(6)])  # the loop's packed input
+    x = np.concatenate([q, np.zeros(12), target, np.zeros(19)])  # the loop's packed input
     out = np.asarray(ctrl.packed_step(x))
     want_dq, want_diag = ctrl.checked_step(q, target)
     np.testing.assert_allclose(out[:6], want_dq, atol=1e-12)

@@ -34,6 +34,7 @@ from jaxcomp.control import (
     make_impedance_controller,
     make_velocity_controller,
 )
+from jaxcomp.control.impedance import live_gains
 from jaxcomp.control.loop import (
     ArmMount,
     arm_model,
@@ -41,6 +42,7 @@ from jaxcomp.control.loop import (
     default_max_error,
     run_control,
 )
+from jaxcomp.control.run_link import RunLink, Tuning
 from jaxcomp.control.timing import CycleTimer
 from jaxcomp.control.trajectory import Trajectory, parse_trajectory
 from jaxcomp.control.watchdog import Watchdog, WatchdogTrip
@@ -153,6 +155,9 @@ def test_guidance_push_moves_base_then_ee_returns_and_base_stops(guidance_run):
     target = rec.extra["target"]
     target_b = np.array([mount.world_to_base(p, b) for p, b in zip(target, base, strict=True)])
     assert np.abs(target_b - target_b[0]).max() < 1e-9
+    # the external force estimate (world frame) sees the push, within its friction band
+    wrench, band = rec.extra["wrench"][pushed], rec.extra["wrench_band"][pushed]
+    assert np.all(np.abs(wrench.mean(0) - [FORCE, 0.0, 0.0]) <= band.mean(0) + 0.15 * FORCE)
     _assert_safe(sim)
 
 
@@ -168,6 +173,8 @@ def test_recording_fields_are_present_and_valid(guidance_run):
     for key, shape in {"target": (n, 3), "ee": (n, 3), "base": (n, 3), "command": (n, 6)}.items():
         assert rec.extra[key].shape == shape and np.isfinite(rec.extra[key]).all()
     assert np.abs(rec.extra["command"]).max() <= 11.0
+    for key, shape in {"current_model": (n, 6), "wrench": (n, 3), "wrench_band": (n, 3)}.items():
+        assert rec.extra[key].shape == shape and np.isfinite(rec.extra[key]).all()
     # ee is the end effector of the recorded q, in the world at the recorded base pose
     mount = ArmMount.from_model(MOBILE)
     for i in (0, n // 2, n - 1):
@@ -735,6 +742,7 @@ GEN3_LITE = ["control", "--model", "gen3_lite"]
         ([*GEN3_LITE, "--push", "100,1,10,0,0", "--duration", "3"], "starts at 100 s, after"),
         ([*GEN3_LITE, "--push", "1,1,1e9,0,0"], "beyond 396 N, 10 times the weight of"),
         ([*GEN3_LITE, "--params", "SHORT"], "ratio must have 6 entries, one per joint"),
+        ([*GEN3_LITE, "--stiffness", "5000"], "stiffness 5000 N/m is outside the safe range"),
         (["control", "--robot", "kortex"], "needs Kinova's kortex_api"),
         (["calibrate", "--robot", "kortex", "--plan", "short"], "needs Kinova's kortex_api"),
     ],
@@ -766,3 +774,68 @@ def test_cli_run_that_does_not_track_ends_with_status_1(tmp_path, monkeypatch, c
     assert status == 1
     assert "ended: not_tracking (not tracking: the end effector stayed more than 5 mm" in out
     assert "Traceback" not in err and "error:" not in err
+
+
+# ----------------------------------------------------------------------------- run link
+
+
+class _Monitor:
+    """A ``LoopMonitor`` keeping what it is given; sets the run's stop at ``stop_at`` s."""
+
+    every = 33
+
+    def __init__(self, link: RunLink, stop_at: float):
+        self.link, self.stop_at = link, stop_at
+        self.rows, self.ks, self.start, self.result = [], [], None, None
+
+    def started(self, start):
+        self.start = start
+
+    def sample(self, k, row):
+        self.ks.append(k)
+        self.rows.append(row.copy())
+        if row[self.start.columns["t"]][0] - self.rows[0][0] >= self.stop_at:
+            self.link.stop.set()
+
+    def ended(self, result):
+        self.result = result
+
+
+def test_run_link_live_gains_monitor_and_stop(controller, tmp_path):
+    """A push of 10 N in guidance: new live gains (K doubled) halve the deflection F / K at
+    once (no recompiling); the monitor gets every 33rd sample; the stop request ends the run
+    ("stopped", ok) with the arm in position mode and the base stopped."""
+    sim = _sim()
+    _ramped_push(sim, 0.2, 5.0, [FORCE, 0.0, 0.0])
+    link = RunLink(tuning=Tuning())
+    monitor = link.monitor = _Monitor(link, stop_at=2.4)
+
+    def retune(k, state, command, target):
+        if k == 1300:  # 1.3 s, from another thread in the console: the same hand-over
+            link.tuning.set(live_gains(2 * K, D, True))
+
+    result = run_control(
+        sim.arm,
+        sim.base,
+        controller,
+        "guidance",
+        None,
+        10.0,
+        tmp_path,
+        on_cycle=retune,
+        link=link,
+    )
+    assert result.kind == "stopped" and result.ok, result.reason
+    assert monitor.result is result and monitor.start.mode == "guidance"
+    assert link.tuning.applied == link.tuning.version == 1
+    assert 2.4 <= result.duration < 2.5
+    np.testing.assert_array_equal(np.diff(monitor.ks), 33)
+    rec = result.recording
+    t = rec.t - rec.t[0]
+    err = np.linalg.norm(rec.extra["ee"] - rec.extra["target"], axis=1)
+    assert err[(t > 1.0) & (t < 1.3)].mean() == pytest.approx(FORCE / K, rel=0.1)
+    assert err[(t > 2.0) & (t < 2.4)].mean() == pytest.approx(FORCE / (2 * K), rel=0.15)
+    rows = np.array(monitor.rows)
+    cols = monitor.start.columns
+    np.testing.assert_array_equal(rows[:, cols["wrench"]], rec.extra["wrench"][monitor.ks])
+    _assert_safe(sim)

@@ -1,5 +1,6 @@
 """Traced programs kept on disk: a second call (as in a new process) runs the kept program
-without tracing, with the same results; other shapes or statics get their own program."""
+without tracing, with the same results; other shapes or statics get their own program; a
+program loaded from shapes serves the call with the data."""
 
 from typing import NamedTuple
 
@@ -32,6 +33,7 @@ def test_a_traced_program_is_kept_and_reused(tmp_path, monkeypatch):
         raise AssertionError("traced again")
 
     monkeypatch.setattr(export, "export", no_tracing)
+    monkeypatch.setattr(traced, "_PROGRAMS", {})  # as in a new process
     again = traced.call("pair", "scale 2", _fn(2.0), args, (Pair,))
     assert isinstance(again, Pair)
     np.testing.assert_array_equal(again.a, [1.0, 3.0, 5.0])
@@ -56,6 +58,19 @@ def test_a_damaged_program_file_is_traced_again(tmp_path, monkeypatch):
     traced.call("pair", "scale 2", _fn(2.0), args, (Pair,))
     (kept,) = tmp_path.iterdir()
     kept.write_bytes(b"not a program")
+    monkeypatch.setattr(traced, "_PROGRAMS", {})  # as in a new process
     out = traced.call("pair", "scale 2", _fn(2.0), args, (Pair,))
     np.testing.assert_array_equal(out.a, [1.0, 3.0])
     assert kept.read_bytes() != b"not a program"
+
+
+def test_a_program_loaded_from_shapes_serves_the_call(tmp_path, monkeypatch):
+    monkeypatch.setattr(traced, "cache_folder", lambda: tmp_path)
+    monkeypatch.setattr(traced, "_PROGRAMS", {})
+    args = (Pair(jnp.arange(3.0), jnp.full(3, 2.0)),)
+    shapes = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), args)
+    loaded = traced.program("pair", "scale 2", _fn(2.0), shapes, (Pair,))
+    assert traced.program("pair", "scale 2", _fn(2.0), args, (Pair,)) is loaded
+    out = traced.call("pair", "scale 2", _fn(2.0), args, (Pair,))
+    np.testing.assert_array_equal(out.a, [2.0, 4.0, 6.0])
+    assert float(out.b) == 6.0

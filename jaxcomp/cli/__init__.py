@@ -8,6 +8,7 @@ from jaxcomp.cli import (  # noqa: F401  (registers the commands)
     bench,
     calibrate,
     check,
+    console,
     control,
     info,
     models,

@@ -66,6 +66,14 @@ BENCHMARKS: dict[str, Benchmark] = {
         full=("--repeats", "3", "--realtime", "60"),
         quick=("--repeats", "1"),
     ),
+    "console": Benchmark(
+        "bench_console.py",
+        "browser console: the 1 kHz loop of the mobile robot paced for 60 s with the console "
+        "and a headless browser attached, and without (target < 0.1 % missed deadlines, no more "
+        "than without)",
+        full=("--seconds", "60", "--repeats", "2"),
+        quick=("--seconds", "3"),
+    ),
     "mjx": Benchmark(
         "bench_mjx.py",
         "MJX: world-steps/s of a batched sweep plan, float64 (target >= 5e6 on one GPU)",

@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import time
+from itertools import chain
 from pathlib import Path
 
 import click
 import numpy as np
 
+from jaxcomp.cli.console_options import console_options
 from jaxcomp.cli.group import cli
 from jaxcomp.cli.kortex_backend import open_kortex_arm
 from jaxcomp.cli.model_options import joint_names, model_options
+from jaxcomp.cli.robot_options import backend_option, ip_option
 from jaxcomp.errors import InputError
 from jaxcomp.files import check_outputs
 
@@ -89,14 +92,9 @@ def _table(columns: dict, links: list[str]) -> str:
 
 
 @cli.command()
-@click.option(
-    "--robot",
-    "backend",
-    type=click.Choice(["sim", "kortex"]),
-    default="sim",
-    show_default=True,
-    help="sim: the simulated --model with a hidden true robot (written to DIR/truth.json); "
-    "kortex: the real Gen3 Lite through kortex_api.",
+@backend_option(
+    "sim: the simulated --model with a hidden true robot (written to DIR/truth.json); kortex: "
+    "the real Gen3 Lite through kortex_api."
 )
 @model_options("gen3_lite", "Robot model (the nominal model the fit starts from)")
 @click.option(
@@ -132,7 +130,7 @@ def _table(columns: dict, links: list[str]) -> str:
     "from --seed around the model's nominal figures; the Gen3 Lite: the paper's ratios and "
     "frictions; COM offsets of a few mm).",
 )
-@click.option("--ip", default="192.168.1.10", show_default=True, help="Arm address (kortex).")
+@ip_option
 @click.option(
     "--resume",
     is_flag=True,
@@ -146,8 +144,26 @@ def _table(columns: dict, links: list[str]) -> str:
     "one is refused).",
 )
 @click.option("--viewer", is_flag=True, help="Show the MuJoCo viewer (sim, needs a display).")
+@console_options(
+    "the calibration: the arm sweeping, its currents, the progress; stop from the page"
+)
 def calibrate(
-    backend, model, joints, site, out_dir, plan, seed, truth_file, ip, resume, overwrite, viewer
+    backend,
+    model,
+    joints,
+    site,
+    out_dir,
+    plan,
+    seed,
+    truth_file,
+    ip,
+    resume,
+    overwrite,
+    viewer,
+    console,
+    port,
+    host,
+    on_disconnect,
 ) -> None:
     """Run the calibration sweeps, record them at 1 kHz, and fit with both methods.
 
@@ -197,6 +213,7 @@ def calibrate(
             arm = sim.arm
         else:
             arm = open_kortex_arm(ip, robot=robot)
+        page = _CalibrationPage(arm, robot, port, host, on_disconnect) if console else None
         try:
             with arm:
                 rec = record(
@@ -206,6 +223,7 @@ def calibrate(
                     model=robot,
                     resume=resume,
                     settings=settings,
+                    on_state=page.on_state if page is not None else None,
                 )
         except KeyboardInterrupt:
             kept = out / "recording.npz"
@@ -216,6 +234,9 @@ def calibrate(
                 err=True,
             )
             raise
+        finally:
+            if page is not None:
+                page.close()
         click.echo(f"recorded {rec.n_samples} samples -> {out / 'recording.npz'}")
         fits = {}
         for method in _METHODS:
@@ -232,6 +253,50 @@ def calibrate(
         _warn(fits["jax"])
         plot_sweeps(rec, columns, out / "sweeps.png")
     click.echo(f"wrote {out / 'params.json'}, {out / 'params_scipy.json'}, {out / 'sweeps.png'}")
+
+
+class _CalibrationPage:
+    """The browser console of a ``jaxcomp calibrate`` run: frames and progress from
+    ``record``'s ``on_state``; the page's stop interrupts the calibration as Ctrl-C does
+    (the finished sweeps are kept for --resume)."""
+
+    def __init__(self, arm, robot, port: int, host: str, on_disconnect: str):
+        import threading
+
+        from jaxcomp.console.link import ConsoleLink
+
+        self.stop = threading.Event()
+        self.link = ConsoleLink(
+            robot,
+            tuple(arm.joint_names),
+            handler=self.handle,
+            port=port,
+            host=host,
+            title=f"jaxcomp calibrate: {robot.name}",
+            controls="calibrate",
+            on_lost=on_disconnect,
+            on_stop=self.stop.set,
+        )
+        self.done = 0.0
+        click.echo(f"console: {self.link.url}", err=True)
+        self.link.status(state="calibrating", detail="jaxcomp calibrate", arm_modes="position")
+
+    def handle(self, name: str, args: dict) -> str:
+        if name == "stop":
+            self.stop.set()
+            return "stopping the calibration (the finished sweeps are kept: --resume)"
+        raise InputError(f"{name}: not while the console is attached to `jaxcomp calibrate`")
+
+    def on_state(self, state, done: float) -> None:
+        if self.stop.is_set():
+            raise KeyboardInterrupt
+        if self.link.feed.state("calibrating", state) and done - self.done >= 0.01:
+            self.done = done
+            self.link.status(progress=done)
+
+    def close(self) -> None:
+        self.link.status(state="ended", detail="the calibration is over", progress=self.done)
+        self.link.close()
 
 
 def _save(params, path: Path) -> None:
@@ -334,18 +399,19 @@ def fit(recordings, method, each, out_file, plot_file, com_prior) -> None:
 def _fit_into(recordings, method, each, out_file, plot_file, com_prior) -> None:
     """``jaxcomp fit`` once its output folders are locked."""
     from jaxcomp.files import writing
-    from jaxcomp.recording import load_recording
+    from jaxcomp.recording import load_recording, load_recordings
     from jaxcomp.robot_params import write_json_atomic
 
-    recs = [load_recording(p) for p in recordings]
     start = time.perf_counter()
     if each:
+        recs = load_recordings(recordings)  # read as the fits go
         if method == "jax":
             from jaxcomp.identify.jax_fit import fit_each
             from jaxcomp.plausibility import check_params
 
-            results = fit_each(recs, progress=True, com_prior=com_prior)
-            robot = recs[0].robot()
+            first = next(recs)  # a batch is read while the one before is fitted
+            results = fit_each(chain([first], recs), progress=True, com_prior=com_prior)
+            robot = first.robot()
             for k, p in enumerate(results):
                 check_params(p, robot, f"the jax fit's params of recording {k}")
         else:
@@ -360,6 +426,7 @@ def _fit_into(recordings, method, each, out_file, plot_file, com_prior) -> None:
 
             plot_batch(results, plot_file)
         return
+    recs = [load_recording(p) for p in recordings]
     params = _fit(recs, method, com_prior)
     _save(params, Path(out_file))
     robot = recs[0].robot()

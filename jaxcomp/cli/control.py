@@ -3,12 +3,21 @@
 from __future__ import annotations
 
 import math
+from typing import Any, NamedTuple
 
 import click
 
+from jaxcomp.cli.console_options import console_options
 from jaxcomp.cli.group import cli
 from jaxcomp.cli.kortex_backend import open_kortex_arm
 from jaxcomp.cli.model_options import joint_names, model_options
+from jaxcomp.cli.robot_options import (
+    backend_option,
+    gains_option,
+    ip_option,
+    params_option,
+    rt_priority_option,
+)
 from jaxcomp.errors import FileError, InputError, ModelError
 
 #: The simulated robot when --model is not given: the Gen3 Lite on its Dingo-O base.
@@ -85,14 +94,9 @@ def _target_marker(sim):
     help="guidance: target fixed to the base (push the arm, the base follows); tracking: the "
     "target follows --trajectory in the world, compliant to pushes.",
 )
-@click.option(
-    "--robot",
-    "backend",
-    type=click.Choice(["sim", "kortex"]),
-    default="sim",
-    show_default=True,
-    help="sim: the MuJoCo simulator; kortex: the real Gen3 Lite (kortex_api) and, when ROS 2 "
-    "is available, the Dingo-O.",
+@backend_option(
+    "sim: the MuJoCo simulator; kortex: the real Gen3 Lite (kortex_api) and, when ROS 2 is "
+    "available, the Dingo-O."
 )
 @model_options(
     DEFAULT_MODEL,
@@ -100,14 +104,10 @@ def _target_marker(sim):
     "base_x, base_y, base_yaw with its base; the arm starts at the model's 'home' keyframe, "
     "else at a start pose chosen on the model)",
 )
-@click.option(
-    "--params",
-    "params_file",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Identified params JSON (ratios A/(N m), friction A, COM offsets m); default: the "
-    "model's nominal figures. The joints it lists are the current-controlled joints (--joints, "
-    "if given, must agree).",
+@params_option(
+    "Identified params JSON (ratios A/(N m), friction A, COM offsets m); default: the model's "
+    "nominal figures. The joints it lists are the current-controlled joints (--joints, if "
+    "given, must agree)."
 )
 @click.option("--trajectory", default="static", show_default=True, help=_TRAJ_HELP)
 @click.option(
@@ -153,18 +153,13 @@ def _target_marker(sim):
     "robot's stiff Cartesian velocity controller (VELOCITY mode, not compliant; the paper's "
     "reference in Exp. 2).",
 )
-@click.option(
-    "--gains",
-    "preset",
-    type=click.Choice(["tracking", "paper"]),
-    default="tracking",
-    show_default=True,
-    help="Impedance gains preset, figures of the Gen3 Lite. tracking: K_d 400 N/m, D_d 30 N s/m, "
+@gains_option(
+    "Impedance gains preset, figures of the Gen3 Lite. tracking: K_d 400 N/m, D_d 30 N s/m, "
     "Eq. (16) with the at-rest friction direction of the motion torque tau - g, t 0.02 rad/s, "
     "nullspace damping 0.3 (holds about 1 mm against the arm's full friction); paper: the "
     "paper's K_d 40 N/m, D_d 3 N s/m, sign(tau), t 0.3 rad/s (with full friction the arm "
     "sticks: centimetres). Other arms: the figures their model declares, else these scaled to "
-    "the arm's apparent mass and reach (jaxcomp.control.presets); the run prints them.",
+    "the arm's apparent mass and reach (jaxcomp.control.presets); the run prints them."
 )
 @click.option(
     "--stiffness",
@@ -199,16 +194,23 @@ def _target_marker(sim):
     is_flag=True,
     help="Replace the recording of an earlier run in --out (without it, such a folder is refused).",
 )
-@click.option(
-    "--rt-priority",
-    type=click.IntRange(0, 99),
-    default=50,
-    show_default=True,
-    help="Real time only: run the loop under SCHED_FIFO at this priority when the OS allows it "
-    "(root or CAP_SYS_NICE; otherwise it runs as usual); 0: never.",
+@rt_priority_option(
+    "Real time only: run the loop under SCHED_FIFO at this priority when the OS allows it "
+    "(root or CAP_SYS_NICE; otherwise it runs as usual); 0: never."
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Simulator truth and noise.")
-@click.option("--ip", default="192.168.1.10", show_default=True, help="Arm address (kortex).")
+@ip_option
+@click.option(
+    "--friction-compensation/--no-friction-compensation",
+    default=True,
+    show_default=True,
+    help="Eq. (16)'s friction compensation in the impedance controller's current (off: r tau "
+    "alone; the joints then stick within their friction band).",
+)
+@console_options(
+    "the run: the arm, the target, the force a person applies, currents, timing; "
+    "stop and live gains from the page"
+)
 def control(**options) -> None:
     """Run the compliant arm (current-based impedance control) with the base follower.
 
@@ -276,6 +278,11 @@ def _control(
     rt_priority: int,
     seed: int,
     ip: str,
+    friction_compensation: bool,
+    console: bool,
+    port: int,
+    host: str,
+    on_disconnect: str,
 ) -> None:
     """``jaxcomp control`` (see ``control``) once its --out folder is locked."""
     from jaxcomp.control.timing import configure_jax_for_control, realtime_priority
@@ -284,17 +291,12 @@ def _control(
     configure_jax_for_control()
 
     from jaxcomp.control.impedance import make_impedance_controller
-    from jaxcomp.control.loop import (
-        ArmMount,
-        arm_model,
-        mobile_model_name,
-        run_control,
-    )
-    from jaxcomp.control.presets import impedance_gains
+    from jaxcomp.control.loop import ArmMount, arm_model, run_control
+    from jaxcomp.control.presets import check_live_gains, impedance_gains
+    from jaxcomp.control.run_link import RunLink, Tuning
     from jaxcomp.control.trajectory import parse_trajectory
     from jaxcomp.control.velocity import make_velocity_controller
-    from jaxcomp.robot import load_robot
-    from jaxcomp.robot_params import RobotParams, arm_joint_indices
+    from jaxcomp.robot_params import RobotParams
 
     spec = parse_trajectory(trajectory)
     push_list = [parse_push(p) for p in pushes]
@@ -315,12 +317,7 @@ def _control(
             raise InputError("--push acts on the simulator only")
         if realtime is False:
             raise InputError("the real robot runs in real time only (drop --lockstep)")
-        options = (("--model", model != DEFAULT_MODEL), ("--joints", joints), ("--site", site))
-        given = [name for name, value in options if value]
-        if given:
-            raise InputError(
-                f"{', '.join(given)}: for the simulator only (--robot kortex drives the Gen3 Lite)"
-            )
+        check_kortex_options(model, joints, site)
         realtime = True
     elif realtime is None:
         realtime = viewer
@@ -333,6 +330,7 @@ def _control(
             controller = make_velocity_controller(arm_robot)
         else:
             gains = impedance_gains(arm_robot, preset, **changes)
+            check_live_gains(arm_robot, gains.stiffness[0], gains.damping[0])
             controller = make_impedance_controller(arm_robot, params, gains)
             click.echo(_describe_gains(preset, controller), err=True)
         click.echo(f"compiling the controller for {arm_robot.name} ...", err=True)
@@ -344,79 +342,221 @@ def _control(
     if backend == "kortex":
         # the params and the controller are checked (and compiled) before the arm is
         # touched: nothing implausible reaches it, and no compile runs while it servos
-        gen3 = load_robot("gen3_lite")
-        mobile = load_robot(mobile_model_name(gen3))
-        checked = None if params is None else _arm_params(params, params_file, mobile, gen3)
+        gen3, checked = kortex_params(params, params_file)
         controller = make_controller(gen3, checked)
 
-    arm = base = sim = None
+    opened = None
     try:
-        if backend == "sim":
-            from jaxcomp.hardware import Simulator
-
-            from_params = params if joints is None else None
-            robot = _load_model(model, chosen, site, from_params, params_file)
-            if not len(arm_joint_indices(robot)):
-                raise ModelError(f"{robot.name} has no arm joints: nothing to control")
-            if params is not None:  # checked before anything is built
-                params = _arm_params(params, params_file, robot, arm_model(robot))
-            sim = Simulator(robot, seed=seed, viewer=viewer, initial_pose="home")
-            arm = sim.arm
-            for text, (start, length, force) in zip(pushes, push_list, strict=True):
-                try:  # the simulator's clock starts with the run
-                    sim.push(sim.t + start, length, force)
-                except InputError as exc:
-                    raise InputError(f"--push {text}: {exc}") from None
-            base = sim.base if sim.has_base else None
-        else:
-            from jaxcomp.hardware import DingoBase
-
-            # the loop paces the cycles itself (absolute 1 kHz deadlines)
-            arm = open_kortex_arm(ip, robot="gen3_lite", pace=False)
-            try:
-                base = DingoBase()
-            except ImportError as exc:
-                click.echo(f"no base: {exc}", err=True)
-                base = None
-            robot = load_robot("gen3_lite")
-            if base is not None:
-                robot = load_robot(mobile_model_name(robot))
+        opened = open_robot(
+            backend, model, chosen, joints, site, params, params_file, seed, viewer, ip
+        )
+        arm, base, sim, robot = opened.arm, opened.base, opened.sim, opened.robot
+        for text, (start, length, force) in zip(pushes, push_list, strict=True):
+            try:  # the simulator's clock starts with the run
+                sim.push(sim.t + start, length, force)
+            except InputError as exc:
+                raise InputError(f"--push {text}: {exc}") from None
         arm_robot = arm_model(robot)
-        if params is not None and sim is None:
-            params = _arm_params(params, params_file, robot, arm_robot)
         if controller is None:
-            controller = make_controller(arm_robot, params)
+            controller = make_controller(arm_robot, opened.params)
+        tuning = None
+        if law == "impedance":
+            tuning = Tuning(
+                checked_live_gains(arm_robot, controller.gains, None, None, friction_compensation)
+            )
+        elif not friction_compensation:
+            raise InputError("--no-friction-compensation: for the impedance controller only")
+        link = RunLink(tuning=tuning)
         mount = ArmMount.from_model(robot) if base is not None else ArmMount()
         marker = _target_marker(sim) if sim is not None else None
-        with realtime_priority(rt_priority if realtime and rt_priority else None):
-            result = run_control(
-                arm,
-                base,
-                controller,
-                mode,
-                spec,
-                duration,
-                out_dir,
-                realtime,
-                mount=mount,
-                model=_model_name(robot),
-                on_cycle=marker,
-                max_error=max_error,
-                max_error_time=max_error_time,
-                before_start=lambda length: _check_pushes(pushes, push_list, length),
-            )
+        page = None
+        if console:
+            page = attach_console(opened, controller, link, port, host, on_disconnect)
+        try:
+            with realtime_priority(rt_priority if realtime and rt_priority else None):
+                result = run_control(
+                    arm,
+                    base,
+                    controller,
+                    mode,
+                    spec,
+                    duration,
+                    out_dir,
+                    realtime,
+                    mount=mount,
+                    model=_model_name(robot),
+                    on_cycle=marker,
+                    max_error=max_error,
+                    max_error_time=max_error_time,
+                    before_start=lambda length: _check_pushes(pushes, push_list, length),
+                    link=link,
+                )
+        finally:
+            if page is not None:
+                page.status(state="ended", detail="the run is over", arm_modes="position")
+                page.close()
     finally:
-        if sim is not None:
-            sim.close()
-        else:
-            for part in (arm, base):
-                if part is not None:
-                    part.close()
+        if opened is not None:
+            close_robot(opened)
     click.echo(result.summary())
     if result.file_error is not None:
         raise FileError(result.file_error)
     if not result.ok:
         raise SystemExit(1)
+
+
+class Opened(NamedTuple):
+    """The robot a command drives: ``arm``, ``base`` (None: none), ``sim`` (the
+    ``Simulator``, None on the real robot), ``robot`` (the whole model: the mobile one with a
+    base) and ``params`` (checked, for the arm-alone model; None: nominal)."""
+
+    arm: Any
+    base: Any
+    sim: Any
+    robot: Any
+    params: Any
+
+
+def check_kortex_options(model: str, joints, site) -> None:
+    """InputError for the simulator's model options given with ``--robot kortex``."""
+    options = (("--model", model != DEFAULT_MODEL), ("--joints", joints), ("--site", site))
+    given = [name for name, value in options if value]
+    if given:
+        raise InputError(
+            f"{', '.join(given)}: for the simulator only (--robot kortex drives the Gen3 Lite)"
+        )
+
+
+def kortex_params(params, params_file: str | None):
+    """(the Gen3 Lite's model, ``params`` checked for it) before the real arm is touched."""
+    from jaxcomp.control.loop import mobile_model_name
+    from jaxcomp.robot import load_robot
+
+    gen3 = load_robot("gen3_lite")
+    mobile = load_robot(mobile_model_name(gen3))
+    return gen3, None if params is None else _arm_params(params, params_file, mobile, gen3)
+
+
+def open_robot(
+    backend: str,
+    model: str,
+    chosen,
+    joints,
+    site,
+    params,
+    params_file,
+    seed: int,
+    viewer: bool,
+    ip: str,
+) -> Opened:
+    """The simulated ``model`` (reduced to the ``chosen`` joints; its arm at its 'home'
+    pose) or the real Gen3 Lite at ``ip`` with its Dingo-O base when ROS 2 is there; the
+    params checked against it (``_arm_params``)."""
+    from jaxcomp.control.loop import arm_model, mobile_model_name
+    from jaxcomp.robot import load_robot
+    from jaxcomp.robot_params import arm_joint_indices
+
+    if backend == "sim":
+        from jaxcomp.hardware import Simulator
+
+        from_params = params if joints is None else None
+        robot = _load_model(model, chosen, site, from_params, params_file)
+        if not len(arm_joint_indices(robot)):
+            raise ModelError(f"{robot.name} has no arm joints: nothing to control")
+        if params is not None:  # checked before anything is built
+            params = _arm_params(params, params_file, robot, arm_model(robot))
+        sim = Simulator(robot, seed=seed, viewer=viewer, initial_pose="home")
+        return Opened(sim.arm, sim.base if sim.has_base else None, sim, robot, params)
+    from jaxcomp.hardware import DingoBase
+
+    # the loop paces the cycles itself (absolute 1 kHz deadlines)
+    arm = open_kortex_arm(ip, robot="gen3_lite", pace=False)
+    try:
+        base = DingoBase()
+    except ImportError as exc:
+        click.echo(f"no base: {exc}", err=True)
+        base = None
+    robot = load_robot("gen3_lite")
+    if base is not None:
+        robot = load_robot(mobile_model_name(robot))
+    if params is not None:
+        params = _arm_params(params, params_file, robot, arm_model(robot))
+    return Opened(arm, base, None, robot, params)
+
+
+def close_robot(opened: Opened) -> None:
+    """Arm to position mode, base stopped, connections closed (the simulator's viewer too)."""
+    if opened.sim is not None:
+        opened.sim.close()
+        return
+    for part in (opened.arm, opened.base):
+        if part is not None:
+            part.close()
+
+
+def checked_live_gains(arm_robot, gains, stiffness, damping, friction_compensation: bool):
+    """The live gains of a run (``impedance.live_gains``): ``stiffness`` N/m and ``damping``
+    N s/m (None: ``gains``'), within the arm's safe ranges (``presets.check_live_gains``, the
+    same check for the command line and the console), friction compensation on or off."""
+    from jaxcomp.control.impedance import live_gains
+    from jaxcomp.control.presets import check_live_gains
+
+    k = gains.stiffness[0] if stiffness is None else stiffness
+    d = gains.damping[0] if damping is None else damping
+    k, d = check_live_gains(arm_robot, k, d)
+    return live_gains(k, d, bool(friction_compensation))
+
+
+def attach_console(opened: Opened, controller, link, port: int, host: str, on_lost: str):
+    """The browser console of a ``jaxcomp control`` run (``jaxcomp.console``): it shows the
+    run and takes stop and live gains (checked as --stiffness and --damping are)."""
+    from jaxcomp.console.link import ConsoleLink
+    from jaxcomp.control.loop import arm_model
+    from jaxcomp.control.presets import gain_limits
+    from jaxcomp.robot_params import BASE_JOINTS
+
+    arm_robot = arm_model(opened.robot)
+    live = link.tuning.values if link.tuning is not None else None
+
+    def handler(name: str, args: dict) -> str:
+        if name == "stop":
+            link.stop.set()
+            return "stopping: arm in position mode, base stopped"
+        if name == "gains" and link.tuning is None:
+            raise InputError("the velocity controller has no impedance gains to set")
+        if name == "gains":
+            friction = args.get("friction", True)
+            values = checked_live_gains(
+                arm_robot, controller.gains, args.get("stiffness"), args.get("damping"), friction
+            )
+            link.tuning.set(values)
+            return f"stiffness {values[0]:g} N/m, damping {values[3]:g} N s/m (now)"
+        raise InputError(
+            f"{name}: not while the console is attached to `jaxcomp control` (its options set "
+            "the mode and trajectory; `jaxcomp console` drives the robot from the page)"
+        )
+
+    base_joints = tuple(BASE_JOINTS) if opened.base is not None else ()
+    page = ConsoleLink(
+        opened.robot,
+        tuple(opened.arm.joint_names),
+        base_joints,
+        handler=handler,
+        port=port,
+        host=host,
+        title=f"jaxcomp control: {opened.robot.name}",
+        controls="control",
+        gains=None
+        if live is None
+        else {"stiffness": live[0], "damping": live[3], "friction": bool(live[6])},
+        limits=gain_limits(arm_robot)._asdict(),
+        on_lost=on_lost,
+        on_stop=link.stop.set,
+    )
+    link.monitor = page.feed
+    click.echo(f"console: {page.url}", err=True)
+    page.status(state="running", detail="jaxcomp control", arm_modes="switching")
+    return page
 
 
 def _arm_params(params, params_file: str | None, robot, arm_robot):

@@ -358,6 +358,7 @@ def run_study(
     jax_table = parameter_table(jax_est, 2 * n)
     scipy_table = parameter_table(scipy_est, 2 * n) if keep else {}
     sigma = noise_estimate[jax_est.ok]
+    plan_group = np.concatenate([np.full(len(gr.rows), g) for g, gr in enumerate(groups)])
     timing["total"] = time.perf_counter() - t_all
     report = {
         "format": FORMAT,
@@ -396,9 +397,7 @@ def run_study(
         },
         "scipy": {
             "worlds": keep,
-            "plans": len(
-                {int(np.searchsorted([gr.rows.stop for gr in groups], w, "right")) for w in sample}
-            ),
+            "plans": len(np.unique(plan_group[sample])),
             "failed": failed,
             "parameters": scipy_table,
             "gravity_current_error": gravity_summary(scipy_est.gravity),
@@ -414,7 +413,7 @@ def run_study(
     }
     arrays = {
         "parameter_names": np.array(jax_est.names),
-        "plan_group": np.concatenate([np.full(len(gr.rows), g) for g, gr in enumerate(groups)]),
+        "plan_group": plan_group,
         "truth": jax_est.truth,
         "jax_estimate": jax_est.estimate,
         "jax_std": jax_est.std,
