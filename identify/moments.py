@@ -191,6 +191,11 @@ def concat_moments(parts: Sequence[SweepMoments]) -> SweepMoments:
 _PER_SWEEP = ("joint", "hold", "moments", "count")
 
 
+def take_sweeps(batch: SweepMoments, order: np.ndarray) -> SweepMoments:
+    """A batch of moments with its sweeps (axis 1) taken in ``order`` (indices)."""
+    return batch._replace(**{k: np.take(getattr(batch, k), order, axis=1) for k in _PER_SWEEP})
+
+
 def stack_worlds(parts: Sequence[SweepMoments]) -> SweepMoments:
     """Batches of moments of the same sweeps in other worlds, joined along the world axis."""
     if not parts:

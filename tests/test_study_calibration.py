@@ -466,15 +466,90 @@ def test_numbers_do_not_depend_on_the_device_count(tiny_plan, study, tmp_path):
         )
 
 
-def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, tiny_plan):
-    """``simulate(parallel=True)`` (each plan sweep its own MJX world, from rest where the
-    sweep before it ends) against the plan run in turn, same truths, noise off: the same
-    samples and labels; the swept joints' motion within 0.5 mrad; the held joints within
-    10 mrad (where Coulomb friction stops a joint under its servo depends on how it got
-    there, and a sweep in its own world starts from a freshly settled rest); the fits within
-    5e-3 (ratio, relative) and 0.5 mA (friction)."""
+@pytest.fixture(scope="module")
+def uneven_plan(robot):
+    """Joints 1-4 of the short plan, joints 2 and 3 over +-8 deg, the others +-25: sweeps of
+    uneven lengths, two of which share a lane side by side (``pack_segments``)."""
+    short = sc.short_plan(robot, speed=math.radians(60), move_speed=math.radians(90))
+    span = {1: 25, 2: 8, 3: 8, 4: 25}
+    sweeps = [
+        Sweep(
+            s.joint,
+            s.hold,
+            max(s.lower, -math.radians(span[s.joint])),
+            math.radians(span[s.joint]),
+            s.speed,
+        )
+        for s in short.sweeps
+        if s.joint in span
+    ]
+    return CalibrationPlan(tuple(sweeps), short.move_speed, 0.2, short.ramp)
+
+
+@pytest.mark.parametrize("arm", ["gen3_lite", "odd"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_lanes_hold_every_sweep_once_in_plan_order(arm, seed, tmp_path):
+    """``pack_segments`` on random plans: every segment once, at its lane and step, after a
+    restart and a settling hold unless first in its lane; lanes in plan order, none longer
+    than the longest segment, fewer lanes than segments where two fit in one."""
+    from jaxcomp.hardware.mjx import PLAN, RESTART, SETTLE
+    from jaxcomp.robot import load_robot
+    from jaxcomp.studies.plan_signal import pack_segments
+
+    if arm == "odd":
+        sys.path.insert(0, str(Path(__file__).parents[1] / "experiments"))
+        from odd_arms import serial_arm
+
+        (tmp_path / "arm.xml").write_text(serial_arm(40 + seed, n=4 + seed, continuous=(0,)))
+        arm = str(tmp_path / "arm.xml")
+    robot = load_robot(arm)
     start = sc.start_pose(robot)
-    signal = sc.plan_signal(sc.named_plan(robot, tiny_plan), start)
+    signal = sc.plan_signal(sc.named_plan(robot, "random:3", seed=seed, group=seed), start)
+    every, hold = 10, 500
+    seg = sc.plan_segments(signal, start, every)
+    lanes = pack_segments(seg, every, hold)
+    length = seg.end - seg.first
+    longest = -(-length.max() // every) * every
+    assert lanes.q_ref.shape[0] == longest
+    K, B = len(length), lanes.q_ref.shape[1]
+    assert set(lanes.lane.tolist()) == set(range(B)) and B <= K
+    fits = any(a + hold + b <= longest for i, a in enumerate(length) for b in length[i + 1 :])
+    assert (B < K) == fits
+    for k in range(K):
+        b, at = lanes.lane[k], lanes.at[k]
+        assert at % every == 0
+        np.testing.assert_array_equal(
+            lanes.q_ref[at : at + length[k], b], seg.q_ref[: length[k], k]
+        )
+        assert (lanes.phase[at : at + length[k], b] == PLAN).all()
+        mine = np.flatnonzero(lanes.lane == b)
+        if k == mine.min():
+            assert at == 0
+            np.testing.assert_array_equal(lanes.start[b], seg.start[k])
+        else:
+            assert k > mine.min() and lanes.at[mine[mine < k]].max() < at
+            assert lanes.phase[at - hold, b] == RESTART
+            assert (lanes.phase[at - hold + 1 : at, b] == SETTLE).all()
+            np.testing.assert_array_equal(
+                lanes.q_ref[at - hold : at, b], seg.start[k][None].repeat(hold, 0)
+            )
+        sig = lanes.signals[b]
+        np.testing.assert_array_equal(
+            sig.joint[at : at + length[k]][: len(seg.signals[k].joint)], seg.signals[k].joint
+        )
+
+
+def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, uneven_plan):
+    """``simulate(parallel=True)`` (each plan sweep from rest where the sweep before it ends,
+    packed into lanes: two of these sweeps share one) against the plan run in turn, same
+    truths, noise off: the same samples and labels; the swept joints' motion within 0.5 mrad;
+    the held joints within 10 mrad (where Coulomb friction stops a joint under its servo
+    depends on how it got there, and a sweep in its own world starts from a freshly settled
+    rest); the fits within 5e-3 (ratio, relative) and 0.5 mA (friction)."""
+    from jaxcomp.studies.plan_signal import pack_segments
+
+    start = sc.start_pose(robot)
+    signal = sc.plan_signal(uneven_plan, start)
     seg = sc.plan_segments(signal, start, every=10)
     assert len(seg.begin) == 4 and seg.end[-1] == len(signal.q_ref)
     for k, (a, b, f) in enumerate(zip(seg.begin, seg.end, seg.first, strict=True)):
@@ -483,13 +558,15 @@ def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, tiny_p
         assert k == 0 or (signal.direction[a] != 0 and signal.direction[a - 1] == 0)
         np.testing.assert_array_equal(seg.signals[k].joint[a - f :], signal.joint[a:b])
         np.testing.assert_array_equal(seg.start[k], signal.q_ref[f - 1] if f else start)
+    lanes = pack_segments(seg, 10, 500)
+    assert lanes.q_ref.shape[1] == 3  # two sweeps share a lane
 
     truth = sc.draw_truth(robot, 1, SEED, sc.TruthSpread(noise=0.0))
     sim = sc.simulator(None)
     kw = dict(seed=SEED, every=10, keep=1)
     turn = sc.simulate(sim, truth, signal, world_batch=1, **kw)
     side = sc.simulate(sim, truth, signal, world_batch=1, parallel=True, **kw)
-    assert side.world_steps == 4 * (len(seg.q_ref) + 500)
+    assert side.world_steps == 3 * (len(lanes.q_ref) + 500)
     np.testing.assert_array_equal(side.fault_step, turn.fault_step)
     for a, b in zip(side.recordings, turn.recordings, strict=True):
         np.testing.assert_array_equal(a.t, b.t)

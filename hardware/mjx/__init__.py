@@ -47,7 +47,7 @@ from jaxcomp.hardware.mjx.gains import servo_gains
 from jaxcomp.hardware.mjx.mesh import batch_mesh
 from jaxcomp.hardware.mjx.model import LS_ITERATIONS, PAYLOAD_BODY, build_model
 from jaxcomp.hardware.mjx.reference import Move, reference_trajectory
-from jaxcomp.hardware.mjx.runner import AGREEMENT, MjxRecording, Reduction
+from jaxcomp.hardware.mjx.runner import AGREEMENT, PLAN, RESTART, SETTLE, MjxRecording, Reduction
 from jaxcomp.hardware.mjx.simulator import SETTLE_STEPS, MjxSimulator
 from jaxcomp.hardware.mjx.truth import BatchTruth, true_inertial_params
 
@@ -62,6 +62,9 @@ __all__ = [
     "FAULT_STOPPED",
     "LS_ITERATIONS",
     "PAYLOAD_BODY",
+    "PLAN",
+    "RESTART",
+    "SETTLE",
     "SETTLE_STEPS",
     "BatchTruth",
     "ClosedLoopResult",

@@ -40,6 +40,11 @@ if TYPE_CHECKING:
 #: 3.1e-7, 1.4e-6).
 AGREEMENT = {"q": 2e-8, "dq": 1e-6, "current": 5e-6}
 
+#: ``run``'s phase of a step, per reference group: the plan (faults count), settling (the
+#: reference held, faults not counted), and a restart: the world set at rest at the
+#: reference, then settling.
+PLAN, SETTLE, RESTART = 0, 1, 2
+
 
 class MjxRecording(NamedTuple):
     """What ``MjxSimulator.run`` recorded (host arrays; R recorded samples).
@@ -102,6 +107,7 @@ def run(
     reduce: Reduction | None = None,
     record: Sequence[int] | np.ndarray | None = None,
     world_ids: Sequence[int] | np.ndarray | None = None,
+    phase: np.ndarray | None = None,
 ) -> MjxRecording:
     """``MjxSimulator.run`` (see there): settle, then the plan, chunk by chunk."""
     every = int(every)
@@ -128,6 +134,9 @@ def run(
     group = np.zeros(w, np.int32) if group is None else np.asarray(group)
     if group.shape != (w,) or not ((group >= 0) & (group < groups)).all():
         raise InputError(f"group must be ({w},) ints in [0, {groups})")
+    phase = np.zeros((t_total, groups), np.int8) if phase is None else np.asarray(phase, np.int8)
+    if phase.shape != (t_total, groups) or not np.isin(phase, (PLAN, SETTLE, RESTART)).all():
+        raise InputError(f"phase must be ({t_total}, {groups}) of PLAN, SETTLE or RESTART")
     clock = sim._clock()
     dtype = sim.dtype
     q0 = sim._initial_pose(initial_pose, w)
@@ -169,11 +178,13 @@ def run(
     # settle: servo to q0 (target q0 = 0 reference + per-world offset q0)
     settle_fields = dict(fields, offset=put(q0.astype(dtype)))
     zero_ref = put_shared(np.zeros((chunk, groups, n), dtype))
+    settling = put_shared(np.full((chunk, groups), SETTLE, np.int8))
     for s in range(0, settle_steps, chunk):
         carry, _ = fn(
             settle_fields,
             carry,
             zero_ref,
+            settling,
             xs_of(0),
             rows_dev,
             np.int32(s - settle_steps),
@@ -207,10 +218,18 @@ def run(
     pending: tuple | None = None
     for s in range(0, t_total, chunk):
         ref = np.empty((chunk, groups, n), dtype)
+        ph = np.zeros((chunk, groups), np.int8)
         k = min(chunk, t_total - s)
-        ref[:k], ref[k:] = q_ref[s : s + k], q_ref[s + k - 1]
+        ref[:k], ref[k:], ph[:k] = q_ref[s : s + k], q_ref[s + k - 1], phase[s : s + k]
         carry, rec = fn(
-            plan_fields, carry, put_shared(ref), xs_of(s), rows_dev, np.int32(s), np.int32(k)
+            plan_fields,
+            carry,
+            put_shared(ref),
+            put_shared(ph),
+            xs_of(s),
+            rows_dev,
+            np.int32(s),
+            np.int32(k),
         )
         if pending is not None:  # host work overlaps the chunk just dispatched
             consume(pending)
@@ -260,7 +279,8 @@ def _build(
     reduce_step: Callable | None,
 ) -> Callable:
     """The jitted chunk function of ``run``: (fields, carry, reference rows (chunk, G, n),
-    reduction rows (chunk // every, G, ...), recorded worlds (M,), first step, valid steps) ->
+    phase rows (chunk, G) (``PLAN``, ``SETTLE``, ``RESTART``), reduction rows
+    (chunk // every, G, ...), recorded worlds (M,), first step, valid steps) ->
     (carry, recorded (q, dq, current) (M, chunk // every, n)). Carry per world: qpos, qvel,
     qacc_warmstart, fault step (first step with a joint at its limit, beyond
     ``following_error`` rad of its target or faster than ``overspeed`` rad/s), the reduction's
@@ -279,9 +299,14 @@ def _build(
 
     vstep = jax.vmap(world_step, in_axes=(0, 0, 0, 0, 0))
 
-    def step(f, carry, i, qr, start, n_valid):
+    def step(f, carry, i, x, start, n_valid):
         qpos, qvel, qacc, fault = carry
+        qr, ph = x
         target = qr[f["group"]] + f["offset"]  # each world's reference (G, n) -> (W, n)
+        ph = ph[f["group"]]
+        restart = (ph == RESTART)[:, None]  # at rest at the reference
+        qpos = jnp.where(restart, target, qpos)
+        qvel, qacc = (jnp.where(restart, 0.0, a) for a in (qvel, qacc))
         q1, dq1, acc1, tau = vstep(f, qpos, qvel, qacc, target)
         valid = i < n_valid
         t = start + i
@@ -290,7 +315,8 @@ def _build(
             | (jnp.abs(dq1) > overspeed).any(axis=1)
             | (jnp.abs(q1 - target) > following_error).any(axis=1)
         )
-        fault = jnp.where((fault < 0) & bad & valid & (t >= 0), t.astype(fault.dtype), fault)
+        counted = valid & (t >= 0) & (ph == PLAN)
+        fault = jnp.where((fault < 0) & bad & counted, t.astype(fault.dtype), fault)
         keep = lambda new, old: jnp.where(valid, new, old)  # noqa: E731
         carry = (keep(q1, qpos), keep(dq1, qvel), keep(acc1, qacc), fault)
         return carry, (q1, dq1, tau)
@@ -313,9 +339,9 @@ def _build(
 
         return jax.lax.scan(body, acc, (xs, q, dq, cur, valid))[0]
 
-    def chunk_fn(f, carry, qr, xs, rows, start, n_valid):
+    def chunk_fn(f, carry, qr, ph, xs, rows, start, n_valid):
         state, (q, dq, tau) = scan_decimated(
-            lambda c, i, qr_i: step(f, c, i, qr_i, start, n_valid), carry[:4], qr, every
+            lambda c, i, x: step(f, c, i, x, start, n_valid), carry[:4], (qr, ph), every
         )
         offsets = jnp.arange(groups) * every
         times = start + offsets

@@ -189,6 +189,7 @@ class MjxSimulator:
         reduce: runner.Reduction | None = None,
         record: Sequence[int] | np.ndarray | None = None,
         world_ids: Sequence[int] | np.ndarray | None = None,
+        phase: np.ndarray | None = None,
     ) -> MjxRecording:
         """Drive every world through the position targets ``q_ref`` (T, n) rad at 1 kHz.
 
@@ -207,7 +208,9 @@ class MjxSimulator:
         returns q, dq, current as None (bounded host memory). ``record``: only these worlds'
         samples leave the device (default all; q, dq, current then have M = len(record) rows).
         ``reduce``: a ``runner.Reduction`` of every world's samples on the device, its final
-        carry returned as ``reduced``. See ``runner``.
+        carry returned as ``reduced``. ``phase`` (T, G) of ``runner.PLAN`` (default),
+        ``SETTLE`` (faults not counted) or ``RESTART`` (the world set at rest at its reference,
+        then settling): several jobs one after another in one world. See ``runner``.
         """
         return runner.run(
             self,
@@ -224,6 +227,7 @@ class MjxSimulator:
             reduce=reduce,
             record=record,
             world_ids=world_ids,
+            phase=phase,
         )
 
     def run_closed_loop(

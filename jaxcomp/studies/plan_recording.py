@@ -8,8 +8,8 @@ sweep's running sums inside the compiled loop (``MjxSimulator.run(reduce=)`` wit
 host memory does not grow with the plan's length, and only the first ``keep`` worlds' samples
 leave the device (for the scipy fit). The current noise is the simulator's, drawn on the device
 from ``fold_in(fold_in(PRNGKey(seed), id), step)`` with ``id`` the world's index in the study
-(``(id * K + k)`` for the K sweeps run side by side), so a world's numbers depend neither on how
-worlds are batched nor on the number of devices.
+(``id * B + b`` for its B lanes of sweeps run side by side), so a world's numbers depend
+neither on how worlds are batched nor on the number of devices.
 
 Units: SI (rad, rad/s, A, s).
 """
@@ -29,14 +29,22 @@ from jaxcomp.identify.moments import (
     StreamSums,
     SweepMoments,
     concat_moments,
+    layout,
     stack_worlds,
     stream_add,
     stream_init,
     stream_plan,
     streamed_moments,
+    take_sweeps,
 )
 from jaxcomp.recording import Recording
-from jaxcomp.studies.plan_signal import PlanSignal, plan_segments, start_pose
+from jaxcomp.studies.plan_signal import (
+    Lanes,
+    PlanSignal,
+    pack_segments,
+    plan_segments,
+    start_pose,
+)
 from jaxcomp.studies.truth_draw import truth_rows
 
 
@@ -103,9 +111,10 @@ def simulate(
     plan come first): the world index of the noise, and of ``keep`` (the worlds below it keep
     their recordings).
 
-    ``parallel``: run the plan's K sweeps side by side (``plan_segments``), K MJX worlds per
-    true robot, each starting at rest where the sweep before it ends: K times the worlds for
-    about 1/K of the steps, which fills an accelerator that a few thousand worlds leave idle.
+    ``parallel``: run the plan's K sweeps side by side (``plan_segments``), each starting at
+    rest where the sweep before it ends, packed into B <= K lanes no longer than the longest
+    sweep (``pack_segments``): B MJX worlds per true robot for about 1/B of the steps, which
+    fills an accelerator that a few thousand worlds leave idle.
     """
     n_worlds, steps = truth.worlds, len(signal.q_ref)
     start = start_pose(sim.robot)
@@ -145,7 +154,7 @@ def simulate(
 
 
 def _run(sim, truth, q_ref, start, seed, every, progress, width, steps, length, reduce, record,
-         world_ids, group, timing):  # fmt: skip
+         world_ids, group, timing, phase=None):  # fmt: skip
     """One MJX run of ``simulate``, its timing added to ``timing`` (s: wall time,
     compilation, stepping) and its progress reported in plan steps of the worlds."""
     done = [0]
@@ -170,6 +179,7 @@ def _run(sim, truth, q_ref, start, seed, every, progress, width, steps, length, 
         reduce=reduce,
         record=record,
         world_ids=world_ids,
+        phase=phase,
     )
     timing["simulate"] += time.perf_counter() - t0
     timing["simulate_compile"] += sim.compile_seconds - compiled
@@ -204,10 +214,15 @@ def _simulate_parallel(
     timing: dict[str, float],
     offset: int,
 ) -> Simulated:
-    """``simulate(parallel=True)``: world w of segment k is MJX world k * B + w of a run."""
+    """``simulate(parallel=True)``: world w of lane b (``pack_segments``) is MJX world
+    b * B + w of a run; the sweeps come back in plan order."""
     seg = plan_segments(signal, start, every)
-    n_worlds, steps, (length, n_seg, _) = truth.worlds, len(signal.q_ref), seg.q_ref.shape
-    plans = [signal_stream_plan(s, every) for s in seg.signals]
+    lanes = pack_segments(seg, every, SETTLE_STEPS)
+    n_worlds, steps, (length, n_lane, _) = truth.worlds, len(signal.q_ref), lanes.q_ref.shape
+    plans = [signal_stream_plan(s, every) for s in lanes.signals]
+    order = np.argsort(
+        np.concatenate([_sweep_keys(s, every) for s in lanes.signals]), kind="stable"
+    )
     reduce = sweep_reduction(plans, sim.n, sim.current_lag)
     kept = min(max(keep - offset, 0), world_batch, n_worlds)
     moments, recordings, faults = [], [], []
@@ -216,39 +231,55 @@ def _simulate_parallel(
     for first in range(0, n_worlds, world_batch):
         rows = np.arange(first, min(first + world_batch, n_worlds))
         width, nk = len(rows), min(kept, len(rows))
-        record = (np.arange(n_seg)[:, None] * width + np.arange(nk)).ravel()
-        ids = ((offset + rows)[None] * n_seg + np.arange(n_seg)[:, None]).ravel()
-        rec = _run(sim, truth_rows(truth, np.tile(rows, n_seg)), seg.q_ref,
-                   np.repeat(seg.start, width, axis=0), seed, every, progress, width, steps,
-                   length, reduce, record, ids, np.repeat(np.arange(n_seg), width),
-                   timing)  # fmt: skip
-        world_steps += width * n_seg * (length + SETTLE_STEPS)
+        record = (np.arange(n_lane)[:, None] * width + np.arange(nk)).ravel()
+        ids = ((offset + rows)[None] * n_lane + np.arange(n_lane)[:, None]).ravel()
+        rec = _run(sim, truth_rows(truth, np.tile(rows, n_lane)), lanes.q_ref,
+                   np.repeat(lanes.start, width, axis=0), seed, every, progress, width, steps,
+                   length, reduce, record, ids, np.repeat(np.arange(n_lane), width),
+                   timing, lanes.phase)  # fmt: skip
+        world_steps += width * n_lane * (length + SETTLE_STEPS)
         t0 = time.perf_counter()
         sums = StreamSums(*rec.reduced)
-        moments.append(
-            concat_moments(
-                [
-                    streamed_moments(StreamSums(*(a[k * width : (k + 1) * width] for a in sums)), p)
-                    for k, p in enumerate(plans)
-                ]
-            )
-        )
+        per_lane = [
+            streamed_moments(StreamSums(*(a[b * width : (b + 1) * width] for a in sums)), p)
+            for b, p in enumerate(plans)
+        ]
+        moments.append(take_sweeps(concat_moments(per_lane), order))
         timing["simulate_moments"] += time.perf_counter() - t0
-        local = rec.fault_step.reshape(n_seg, width)
-        at = np.where(local >= 0, local + seg.first[:, None], np.iinfo(np.int64).max)
-        faults.append(np.where((local >= 0).any(axis=0), at.min(axis=0), -1))
+        faults.append(_plan_fault(rec.fault_step.reshape(n_lane, width), lanes, seg.first))
         mine = int(np.count_nonzero(offset + rows < keep))
         if mine:  # the kept worlds' samples of each segment, in plan order
             parts = []
-            for k in range(n_seg):
-                idx = (
-                    rec_steps[(rec_steps >= seg.begin[k]) & (rec_steps < seg.end[k])] - seg.first[k]
-                ) // every
+            for k, b in enumerate(lanes.lane):
+                plan_steps = rec_steps[(rec_steps >= seg.begin[k]) & (rec_steps < seg.end[k])]
+                idx = (plan_steps - seg.first[k] + lanes.at[k]) // every
                 parts.append(
-                    tuple(a[k * nk : (k + 1) * nk][:, idx] for a in (rec.q, rec.dq, rec.current))
+                    tuple(a[b * nk : (b + 1) * nk][:, idx] for a in (rec.q, rec.dq, rec.current))
                 )
             q, dq, cur = (np.concatenate(x, axis=1) for x in zip(*parts, strict=True))
             recordings += [
                 _recording(sim, signal, rec_steps, q[i], dq[i], cur[i]) for i in range(mine)
             ]
     return Simulated(stack_worlds(moments), recordings, np.concatenate(faults), timing, world_steps)
+
+
+def _sweep_keys(signal: PlanSignal, every: int) -> np.ndarray:
+    """The plan sweep of each sweep that ``stream_plan`` finds in ``signal`` recorded every
+    ``every`` steps, in its order."""
+    rec = np.arange(0, len(signal.joint), every)
+    lay = layout(signal.joint[rec], signal.direction[rec])
+    return signal.sweep[rec][lay.first[:, 0]]
+
+
+def _plan_fault(local: np.ndarray, lanes: Lanes, first: np.ndarray) -> np.ndarray:
+    """(W,) each world's first fault as a plan step (-1: none) from its lanes' first faults
+    ``local`` (B, W) in lane steps; segment k runs in lane ``lanes.lane[k]`` from lane step
+    ``lanes.at[k]`` as plan step ``first[k]`` (a lane's segments are in plan order)."""
+    plan = np.full(local.shape, np.iinfo(np.int64).max)
+    for b in range(local.shape[0]):
+        ks = np.flatnonzero(lanes.lane == b)
+        ks = ks[np.argsort(lanes.at[ks])]
+        k = ks[np.maximum(np.searchsorted(lanes.at[ks], local[b], "right") - 1, 0)]
+        plan[b] = np.where(local[b] >= 0, local[b] - lanes.at[k] + first[k], plan[b])
+    at = plan.min(axis=0)
+    return np.where(at < np.iinfo(np.int64).max, at, -1)

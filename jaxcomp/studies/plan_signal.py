@@ -9,7 +9,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxcomp.errors import InputError
-from jaxcomp.hardware.mjx import Move, reference_trajectory
+from jaxcomp.hardware.mjx import PLAN, RESTART, SETTLE, Move, reference_trajectory
 from jaxcomp.identify.plan import CalibrationPlan, arm_pose
 from jaxcomp.identify.recorder import MOVE_DIRECTION
 from jaxcomp.robot import Robot
@@ -123,3 +123,85 @@ def plan_segments(signal: PlanSignal, start: np.ndarray, every: int) -> Segments
             )
         )
     return Segments(q_ref, np.array(starts), first, begin, end, signals)
+
+
+class Lanes(NamedTuple):
+    """A plan's ``Segments`` packed into B lanes, each lane one MJX world per true robot that
+    runs its segments one after another (``plan_recording.simulate(parallel=True)``).
+
+    Segment k runs in lane ``lane[k]`` from lane step ``at[k]`` (a multiple of the recording
+    decimation): the lane's first segment right after the run's settling, each later one after
+    a restart at rest at its start pose and ``settle`` steps held there (phase ``SETTLE``,
+    faults not counted). ``q_ref`` (L, B, n) rad and ``phase`` (L, B) (``runner.PLAN``,
+    ``SETTLE``, ``RESTART``): the lanes' references and phases, each held at its last pose up
+    to the longest length L; ``start`` (B, n) rad: each lane's first pose; ``signals``: each
+    lane's ``PlanSignal`` (settling labelled outside sweeps; ``sweep`` the plan sweep).
+    """
+
+    q_ref: np.ndarray
+    phase: np.ndarray
+    start: np.ndarray
+    lane: np.ndarray
+    at: np.ndarray
+    signals: list[PlanSignal]
+
+
+def pack_segments(seg: Segments, every: int, settle: int) -> Lanes:
+    """``seg`` packed into as few lanes as first-fit decreasing finds with none longer than the
+    longest segment (rounded up to ``every``): B >= K * mean / longest lanes instead of K, the
+    lanes' steps (L B) that much fewer. Depends on the plan alone (not on the worlds), so a
+    world's numbers do not depend on how many run. ``settle`` steps: the hold after a restart
+    (``SETTLE_STEPS`` as the run's own settling), rounded up to ``every``."""
+    up = lambda x: -(-int(x) // every) * every  # noqa: E731
+    length = np.array([up(e - f) for f, e in zip(seg.first, seg.end, strict=True)])
+    hold = up(settle)
+    capacity = length.max()
+    bins: list[list[int]] = []
+    used: list[int] = []
+    for k in sorted(range(len(length)), key=lambda k: (-length[k], k)):
+        b = next((b for b, u in enumerate(used) if u + hold + length[k] <= capacity), None)
+        if b is None:
+            bins.append([k])
+            used.append(length[k])
+        else:
+            bins[b].append(k)
+            used[b] += hold + length[k]
+    n = seg.q_ref.shape[2]
+    L = max(used)
+    q_ref = np.empty((L, len(bins), n))
+    phase = np.full((L, len(bins)), PLAN, np.int8)
+    lane, at = np.zeros(len(length), int), np.zeros(len(length), int)
+    signals = []
+    bins = sorted(bins, key=min)  # lane 0 starts the plan
+    for b, jobs in enumerate(bins):
+        parts, t = [], 0
+        for i, k in enumerate(sorted(jobs)):  # plan order: a lane's first fault is its earliest
+            s = seg.signals[k]
+            if i:
+                q_ref[t : t + hold, b] = seg.start[k]
+                phase[t : t + hold, b] = SETTLE
+                phase[t, b] = RESTART
+                parts.append(PlanSignal(np.repeat(seg.start[k][None], hold, 0), *_outside(hold)))
+                t += hold
+            ref = np.concatenate([s.q_ref, np.repeat(s.q_ref[-1:], length[k] - len(s.q_ref), 0)])
+            q_ref[t : t + length[k], b] = ref
+            pad = length[k] - len(s.q_ref)
+            parts.append(
+                PlanSignal(
+                    ref,
+                    np.r_[s.joint, np.full(pad, -1)],
+                    np.r_[s.direction, np.zeros(pad, s.direction.dtype)],
+                    np.r_[s.sweep, np.full(pad, k)],
+                )
+            )
+            lane[k], at[k] = b, t
+            t += length[k]
+        q_ref[t:, b] = q_ref[t - 1, b]
+        signals.append(PlanSignal(*(np.concatenate(x) for x in zip(*parts, strict=True))))
+    start = seg.start[[min(jobs) for jobs in bins]]
+    return Lanes(q_ref, phase, start, lane, at, signals)
+
+
+def _outside(steps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(joint, direction, sweep) labels of ``steps`` steps outside any sweep."""
+    return np.full(steps, -1), np.zeros(steps, int), np.full(steps, -1)
