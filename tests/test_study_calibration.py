@@ -40,6 +40,7 @@ from jaxcomp.recording import load_recording
 from jaxcomp.robot_params import RobotParams, json_ready
 from jaxcomp.studies import calibration as sc
 from jaxcomp.studies.calibration_estimates import jax_truth_vector
+from jaxcomp.studies.processes import CLUSTER_VARIABLES
 from jaxcomp.studies.study_chunks import ChunkStore, study_chunks
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -191,6 +192,27 @@ def test_pooled_gravity_error_is_one_number_over_poses_and_joints(robot):
 def test_bad_input_is_refused_before_anything_runs(args, message, tmp_path):
     out = tmp_path / "out"
     result = CliRunner().invoke(cli, ["study", "calibration", "--out", str(out), *args])
+    assert isinstance(result.exception, InputError), result.output
+    assert message in str(result.exception)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--distributed"], "--distributed needs --coordinator HOST:PORT"),
+        (["--distributed", "--coordinator", "h:1", "--num-processes", "2"], "needs --coordinator"),
+        (["--distributed", "--coordinator", "h", "--num-processes", "2", "--process-id", "0"],
+         "--coordinator must be HOST:PORT"),
+        (["--distributed", "--coordinator", "h:1", "--num-processes", "2", "--process-id", "2"],
+         "--process-id must be in 0..1"),
+    ],
+)  # fmt: skip
+def test_distributed_without_its_processes_is_refused(args, message, tmp_path, monkeypatch):
+    for k in ("JAX_COORDINATOR_ADDRESS", *CLUSTER_VARIABLES):
+        monkeypatch.delenv(k, raising=False)
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, ["study", "calibration", "--worlds", "2", "--out", out, *args])
     assert isinstance(result.exception, InputError), result.output
     assert message in str(result.exception)
     assert not out.exists()

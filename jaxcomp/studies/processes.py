@@ -13,6 +13,7 @@ leaving the others waiting.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
 from typing import NamedTuple, TypeVar
 
@@ -20,6 +21,9 @@ import numpy as np
 
 from jaxcomp.errors import InputError
 
+#: Environment variables of the launchers whose processes ``jax.distributed`` finds itself
+#: (SLURM's srun, Open MPI's mpirun).
+CLUSTER_VARIABLES = ("SLURM_JOB_ID", "OMPI_MCA_orte_hnp_uri", "OMPI_COMM_WORLD_SIZE")
 #: Bytes of an error message that ``exchange`` carries.
 MESSAGE_BYTES = 2048
 T = TypeVar("T")
@@ -61,6 +65,16 @@ def start_processes(
         if named:
             raise InputError(f"{', '.join(named)}: only with --distributed")
         return ONE_PROCESS
+    address = coordinator or os.environ.get("JAX_COORDINATOR_ADDRESS")
+    cluster = any(k in os.environ for k in CLUSTER_VARIABLES)
+    if not cluster and (address is None or num_processes is None or process_id is None):
+        raise InputError(
+            "--distributed needs --coordinator HOST:PORT of process 0 (or "
+            "JAX_COORDINATOR_ADDRESS), --num-processes and --process-id, unless launched by "
+            "srun (SLURM) or mpirun (Open MPI)"
+        )
+    if address is not None and not address.rpartition(":")[2].isdigit():
+        raise InputError(f"--coordinator must be HOST:PORT, got {address!r}")
     if num_processes is not None and num_processes < 1:
         raise InputError(f"--num-processes must be >= 1, got {num_processes}")
     if process_id is not None and not 0 <= process_id < (num_processes or process_id + 1):
