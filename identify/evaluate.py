@@ -151,6 +151,7 @@ def gravity_current_error_batch(
     *,
     pooled: bool = False,
     joints: np.ndarray | None = None,
+    fixed: bool = False,
 ) -> np.ndarray:
     """``gravity_current_error`` of W params sets against W truths, batched on the default
     backend; (W, n) per world and joint, NaN where the true gravity current is ~0.
@@ -163,7 +164,9 @@ def gravity_current_error_batch(
     ``truth_ratio``, ``ratio``: (W, n) A/(N m); ``truth_com``, ``com``: (W, nb, 3) m, COM
     offsets of every link (``robot.link_names`` order, link frame) added to the nominal model;
     ``poses`` (P, n) rad of the current-controlled joints; default gravity, no payload.
-    Worlds go ``batch`` at a time (the last batch padded), one compilation per robot and shape.
+    Worlds go ``batch`` at a time (the last batch padded), one compilation per robot and shape;
+    ``fixed``: ``batch`` worlds also when W is smaller (padded), so that a world's numbers are
+    those of one compiled batch shape whatever the other worlds.
     """
     truth_ratio, ratio = np.asarray(truth_ratio, float), np.asarray(ratio, float)
     truth_com, com = np.asarray(truth_com, float), np.asarray(com, float)
@@ -173,7 +176,7 @@ def gravity_current_error_batch(
         raise InputError(f"ratios must be (W, n) = {(w, n)} and COM offsets (W, {nb}, 3)")
     full = _full_poses(robot, poses)
     fn = _jitted(robot, gravity_current_squares)
-    b = max(1, min(int(batch), w))
+    b = max(1, int(batch) if fixed else min(int(batch), w))
     err, true = np.zeros((w, n)), np.zeros((w, n))
     for s in range(0, w, b):
         idx = np.minimum(np.arange(s, s + b), w - 1)

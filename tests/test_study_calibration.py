@@ -11,6 +11,7 @@ import functools
 import json
 import math
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -35,9 +36,12 @@ from jaxcomp.identify.evaluate import (
 from jaxcomp.identify.moments import sweep_moments, world_moments
 from jaxcomp.identify.plan import CalibrationPlan, Sweep
 from jaxcomp.identify.random_plans import plan_seed
-from jaxcomp.robot_params import RobotParams
+from jaxcomp.recording import load_recording
+from jaxcomp.robot_params import RobotParams, json_ready
 from jaxcomp.studies import calibration as sc
 from jaxcomp.studies.calibration_estimates import jax_truth_vector
+from jaxcomp.studies.processes import CLUSTER_VARIABLES
+from jaxcomp.studies.study_chunks import ChunkStore, study_chunks
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 3
@@ -99,6 +103,9 @@ def test_draw_truth_is_per_world_and_within_its_spread(robot):
     assert (torque[:, 2] > paper[2]).any() and (torque[:, 2] < paper[2]).any()
     assert np.abs(big.com_offset).max() <= 0.004 and np.all(big.com_offset[:, 0] == 0)  # base
     assert np.all(big.current_noise == 0.05) and np.all(big.viscous == 0)
+    part = sc.draw_truth(robot, 20, 7, spread, first=30)  # drawn without worlds 0-29
+    for f in ("ratio", "friction", "com_offset", "current_noise", "viscous"):
+        np.testing.assert_array_equal(getattr(part, f), getattr(big, f)[30:50])
     other = sc.draw_truth(robot, 3, 8, spread)
     assert not np.allclose(other.ratio, small.ratio)
     with pytest.raises(InputError, match="model-error"):
@@ -177,11 +184,35 @@ def test_pooled_gravity_error_is_one_number_over_poses_and_joints(robot):
         (["--worlds", "2", "--plan", "nope"], "--plan must be one of"),
         (["--worlds", "2", "--plan", "random:0"], "--plan random:K needs an integer K >= 1"),
         (["--worlds", "2", "--plan", "random:3"], "needs at least as many --worlds (2)"),
+        (["--worlds", "2", "--chunk-worlds", "0"], "--chunk-worlds must be an integer >= 1"),
+        (["--worlds", "2", "--keep-samples", "-1"], "--keep-samples must be an integer >= 0"),
+        (["--worlds", "2", "--process-id", "1"], "--process-id: only with --distributed"),
     ],
 )
 def test_bad_input_is_refused_before_anything_runs(args, message, tmp_path):
     out = tmp_path / "out"
     result = CliRunner().invoke(cli, ["study", "calibration", "--out", str(out), *args])
+    assert isinstance(result.exception, InputError), result.output
+    assert message in str(result.exception)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--distributed"], "--distributed needs --coordinator HOST:PORT"),
+        (["--distributed", "--coordinator", "h:1", "--num-processes", "2"], "needs --coordinator"),
+        (["--distributed", "--coordinator", "h", "--num-processes", "2", "--process-id", "0"],
+         "--coordinator must be HOST:PORT"),
+        (["--distributed", "--coordinator", "h:1", "--num-processes", "2", "--process-id", "2"],
+         "--process-id must be in 0..1"),
+    ],
+)  # fmt: skip
+def test_distributed_without_its_processes_is_refused(args, message, tmp_path, monkeypatch):
+    for k in ("JAX_COORDINATOR_ADDRESS", *CLUSTER_VARIABLES):
+        monkeypatch.delenv(k, raising=False)
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, ["study", "calibration", "--worlds", "2", "--out", out, *args])
     assert isinstance(result.exception, InputError), result.output
     assert message in str(result.exception)
     assert not out.exists()
@@ -334,6 +365,49 @@ def test_the_scipy_sample_takes_the_first_worlds_of_every_plan(seed):
             )
 
 
+@pytest.mark.parametrize("seed", range(5))
+def test_chunks_cover_the_worlds_and_never_straddle_plans(seed):
+    """Chunks of at most C contiguous worlds, in order, cut where a plan group ends; the worlds
+    that send samples (scipy sample, first K) are a prefix of every group, as simulate takes
+    them."""
+    rng = np.random.default_rng(seed)
+    worlds = int(rng.integers(1, 300))
+    groups = sc.world_groups(worlds, int(rng.integers(1, worlds + 1)))
+    size = int(rng.integers(1, 40))
+    chunks = study_chunks(groups, size)
+    assert [c.index for c in chunks] == list(range(len(chunks)))
+    np.testing.assert_array_equal(np.concatenate([list(c.rows) for c in chunks]), range(worlds))
+    for c in chunks:
+        assert 1 <= len(c.rows) <= size and set(c.rows) <= set(groups[c.group])
+        assert c.rows.start == groups[c.group].start or len(chunks[c.index - 1].rows) == size
+    sample = sc.baseline_worlds(groups, int(rng.integers(0, worlds + 1)))
+    sent = sc.sampled_worlds(groups, sample, int(rng.integers(0, worlds + 5)))
+    for rows in groups:
+        mine = sent[(sent >= rows.start) & (sent < rows.stop)]
+        np.testing.assert_array_equal(mine, np.arange(rows.start, rows.start + len(mine)))
+    for bad in (0, -3, 1.5):
+        with pytest.raises(InputError, match="--chunk-worlds must be an integer >= 1"):
+            study_chunks(groups, bad)
+
+
+def test_resume_keeps_only_chunks_of_the_same_settings(tmp_path):
+    """A chunk folder is refused without --resume, and with --resume when a setting differs
+    (one InputError naming it); the same settings keep its chunk files."""
+    store = ChunkStore(tmp_path / "chunks")
+    settings = {"seed": 3, "worlds": 4, "plan": "short", "spread": {"com_offset": 0.004}}
+    assert store.prepare(settings, resume=True) == 0  # nothing to resume: a fresh start
+    chunk = study_chunks([range(4)], 2)[1]
+    store.write(chunk, {"world": {"x": np.arange(2.0)}, "timing": {"t": 1.5}})
+    assert store.prepare(settings, resume=True) == 1 and store.done(chunk)
+    np.testing.assert_array_equal(store.read(chunk)["world"]["x"], [0.0, 1.0])
+    with pytest.raises(InputError, match="--resume continues it"):
+        store.prepare(settings, resume=False)
+    with pytest.raises(InputError, match="seed 3 then, 4 now; the spread differs"):
+        store.prepare(settings | {"seed": 4, "spread": {"com_offset": 0.0}}, resume=True)
+    store.remove()
+    assert not store.folder.exists()
+
+
 def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch):
     """--plan random:2: world 0 records one random plan, world 1 another (quick ones here: short
     fast sweeps near the middle of the ranges; the study's take minutes on this CPU). The truths
@@ -410,6 +484,73 @@ def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch)
         assert f"largest ratio error the JAX fit reports identified ({ident.sum()} ratios)" in text
     else:
         assert "no ratio reported identified" in text
+
+
+def _tiny(plan: str, **kw) -> sc.CalibrationSettings:
+    return sc.CalibrationSettings(2, SEED, plan=plan, baseline_sample=2, poses=200, **kw)
+
+
+@pytest.fixture(scope="module")
+def whole(robot, tiny_plan, tmp_path_factory):
+    """The tiny study in one chunk, on the module's robot (its simulator compiled once)."""
+    out = tmp_path_factory.mktemp("whole") / "a"
+    return sc.study_into(out, _tiny(tiny_plan), progress=False, robot=robot)
+
+
+def _same(a: sc.StudyOutputs, b: sc.StudyOutputs, skip: tuple[str, ...] = ()) -> None:
+    """The same findings (all but run times and ``skip``) and per-world arrays, bit for bit."""
+    drop = (*TIMING, *skip)
+    assert json_ready({k: v for k, v in a.report.items() if k not in drop}) == json_ready(
+        {k: v for k, v in b.report.items() if k not in drop}
+    )  # as study.json has them (NaN: null)
+    assert a.arrays.keys() == b.arrays.keys()
+    for k, v in a.arrays.items():
+        np.testing.assert_array_equal(b.arrays[k], v, err_msg=k)
+
+
+def test_chunked_interrupted_and_resumed_study_is_the_whole_one(
+    whole, robot, tiny_plan, tmp_path, monkeypatch
+):
+    """One world per chunk, interrupted after the first chunk and resumed: the same per-world
+    arrays and findings as the study in one chunk, bit for bit (each world's truth, noise and
+    fit are its own; the fits run in batches of one shape). The finished chunk stays on disk
+    until the report is written; the first --keep-samples worlds' recordings are saved."""
+    out = tmp_path / "chunked"
+    settings = _tiny(tiny_plan, chunk_worlds=1, keep_samples=1)
+    real, calls = sc.chunk_results, []
+
+    def interrupted(study, chunk, progress=False):
+        calls.append(chunk.index)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(study, chunk, progress)
+
+    monkeypatch.setattr(sc, "chunk_results", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        sc.study_into(out, settings, progress=False, robot=robot)
+    assert sorted(p.name for p in (out / "chunks").iterdir()) == [
+        "settings.json",
+        "worlds_000000000_000000001.npz",
+    ]
+    assert not (out / sc.STUDY_FILE).exists()
+    with pytest.raises(InputError, match="--resume continues it"):
+        sc.study_into(out, settings, progress=False, robot=robot)
+    with pytest.raises(InputError, match="every 10 then, 5 now"):
+        sc.study_into(out, _tiny(tiny_plan, chunk_worlds=1, keep_samples=1, every=5),
+                      robot=robot, progress=False, resume=True)  # fmt: skip
+    calls.clear()
+    resumed = sc.study_into(out, settings, progress=False, robot=robot, resume=True)
+    assert calls == [1]  # the first chunk was kept
+    assert resumed.report["chunk_worlds"] == 1 and whole.report["chunk_worlds"] == 2
+    _same(whole, resumed, skip=("chunk_worlds",))
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        [*sc.FIGURES, sc.STUDY_FILE, sc.WORLDS_FILE, "samples"]
+    )
+    assert [p.name for p in (out / "samples").iterdir()] == ["world_00000.npz"]
+    rec = load_recording(out / "samples" / "world_00000.npz")
+    signal = sc.plan_signal(sc.named_plan(robot, tiny_plan), sc.start_pose(robot))
+    np.testing.assert_array_equal(rec.joint, signal.joint[::10])
+    np.testing.assert_allclose(rec.q, signal.q_ref[::10], atol=0.05)  # it followed the plan
 
 
 def test_outputs_are_all_or_nothing(study, tmp_path, monkeypatch):
@@ -584,3 +725,40 @@ def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, uneven
     # held pose: the ratios agree far inside their standard errors (1-5 %)
     np.testing.assert_allclose(f_side.ratio, f_turn.ratio, rtol=5e-3)
     np.testing.assert_allclose(f_side.friction, f_turn.friction, atol=5e-4)
+
+
+@pytest.mark.slow
+def test_two_processes_give_the_one_process_study(whole, tiny_plan, tmp_path):
+    """--distributed over two local CPU processes (gloo), one world per chunk, each process
+    its own chunk: process 0's worlds.npz and study.json findings are those of the study in
+    one process, bit for bit; the other process writes no report."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "two"
+    args = ["study", "calibration", "--worlds", "2", "--seed", str(SEED), "--plan", tiny_plan]
+    args += ["--baseline-sample", "2", "--poses", "200", "--no-progress", "--out", str(out)]
+    args += ["--chunk-worlds", "1", "--distributed", "--coordinator", f"127.0.0.1:{port}"]
+    args += ["--num-processes", "2"]
+    code = "from jaxcomp.cli import main; main()"
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    runs = [
+        subprocess.Popen(
+            [sys.executable, "-c", code, *args, "--process-id", str(i)],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )  # fmt: skip
+        for i in range(2)
+    ]
+    done = [r.communicate(timeout=900) for r in runs]
+    for r, (_, stderr) in zip(runs, done, strict=True):
+        assert r.returncode == 0, stderr[-3000:]
+    assert "process 1: its chunks are done" in done[1][0] and "wrote" in done[0][0]
+    report = json.loads((out / sc.STUDY_FILE).read_text())
+    with np.load(out / sc.WORLDS_FILE) as data:
+        arrays = {k: data[k] for k in data.files}
+    assert report["processes"] == 2 and whole.report["processes"] == 1
+    _same(whole, sc.StudyOutputs(report, arrays, []), skip=("processes", "chunk_worlds"))
+    assert not (out / "chunks").exists()

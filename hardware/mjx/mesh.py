@@ -22,8 +22,9 @@ Put = Callable[[PyTree], PyTree]
 
 
 def batch_mesh(devices: int | None = None) -> Mesh:
-    """A 1-D mesh with axis ``"batch"`` over the first ``devices`` devices (default all)."""
-    devs = jax.devices()
+    """A 1-D mesh with axis ``"batch"`` over this process's first ``devices`` devices (default
+    all; under ``jax.distributed`` each process shards its own worlds over its own devices)."""
+    devs = jax.local_devices()
     k = len(devs) if devices is None else int(devices)
     if not 1 <= k <= len(devs):
         raise InputError(f"devices must be in 1..{len(devs)}, got {devices}")

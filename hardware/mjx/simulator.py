@@ -112,9 +112,12 @@ class MjxSimulator:
         site = end_effector_site(self.robot)
         self._ee_site = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, site)
         self._ee_body = int(m.site_bodyid[self._ee_site])
+        # this process's first device (MJX's default, jax.devices()[0], is another process's
+        # under jax.distributed)
+        device = jax.local_devices()[0]
         with self._precision():  # float32: the model's arrays and every traced literal
-            self._mx = mjx.put_model(m)
-            self._d0 = mjx.make_data(self._mx)
+            self._mx = mjx.put_model(m, device=device)
+            self._d0 = mjx.make_data(self._mx, device=device)
         self._compiled: dict[Hashable, Callable] = {}
         self.compile_seconds = 0.0  # time spent compiling chunk functions so far
         #: wall seconds of the last run: prepare (truth -> fields, gains), settle, plan

@@ -104,6 +104,45 @@ from jaxcomp.cli.study import study
     help="Simulate the plan's sweeps side by side (K worlds per robot, each from rest where "
     "the sweep before it ends) or in turn. Default: side by side on an accelerator.",
 )
+@click.option(
+    "--chunk-worlds",
+    type=int,
+    default=None,
+    help="Worlds per chunk: the study runs chunk by chunk (each chunk one plan's worlds), each "
+    "finished chunk saved in DIR/chunks until the report is written. Default: 4096 (the "
+    "whole study when it has fewer).",
+)
+@click.option(
+    "--resume",
+    is_flag=True,
+    help="Keep the finished chunks of an interrupted study in DIR and run the others; refused "
+    "when its settings (model, seed, plan, worlds, spread, --every, --chunk-worlds, ...) differ.",
+)
+@click.option(
+    "--keep-samples",
+    type=int,
+    default=0,
+    show_default=True,
+    help="Save the recorded samples of the first N worlds as recordings, "
+    "DIR/samples/world_00000.npz, ... (for plots; jaxcomp fit reads them).",
+)
+@click.option(
+    "--distributed",
+    is_flag=True,
+    help="One study over several processes (jax.distributed), each running every P-th chunk "
+    "on its own devices into the shared DIR, process 0 writing the report; under SLURM (srun) "
+    "and Open MPI (mpirun) the processes are found, otherwise give the three options below.",
+)
+@click.option(
+    "--coordinator",
+    default=None,
+    help="HOST:PORT of process 0's coordinator (with --distributed; default: "
+    "$JAX_COORDINATOR_ADDRESS, or SLURM's / Open MPI's).",
+)
+@click.option("--num-processes", type=int, default=None, help="Processes P (--distributed).")
+@click.option(
+    "--process-id", type=int, default=None, help="This process's id, 0..P-1 (--distributed)."
+)
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def calibration(
     model: str,
@@ -126,6 +165,13 @@ def calibration(
     fit_batch: int | None,
     progress: bool,
     parallel: bool | None,
+    chunk_worlds: int | None,
+    resume: bool,
+    keep_samples: int,
+    distributed: bool,
+    coordinator: str | None,
+    num_processes: int | None,
+    process_id: int | None,
 ) -> None:
     """Calibrate N simulated true robots at once and compare with their truth (MJX).
 
@@ -138,8 +184,12 @@ def calibration(
     joints, is worse than the scipy fit's), the largest error of an identified ratio, coverage of
     the reported standard errors, Cramer-Rao comparison, run times;
     DIR/errors.png, DIR/coverage.png; DIR/worlds.npz: per-world truth and estimates. Nothing
-    is written on error. The same --seed reproduces the numbers (timings aside).
+    is written on error but the finished chunks (DIR/chunks), which --resume keeps. The same
+    --seed reproduces the numbers (timings aside), whatever --chunk-worlds and the processes.
     """
+    from jaxcomp.studies.processes import start_processes
+
+    processes = start_processes(distributed, coordinator, num_processes, process_id)
     from jaxcomp.studies.calibration import (
         CalibrationSettings,
         TruthSpread,
@@ -160,10 +210,18 @@ def calibration(
         poses=poses,
         parallel=parallel,
         com_prior=com_prior,
+        chunk_worlds=chunk_worlds,
+        keep_samples=keep_samples,
     )
     from jaxcomp.robot import load_robot
 
     robot = load_robot(model, joints=joint_names(joints), site=site)
-    result = study_into(Path(out_dir), settings, progress=progress, robot=robot)
+    result = study_into(
+        Path(out_dir), settings, progress=progress, robot=robot, resume=resume,
+        processes=processes,
+    )  # fmt: skip
+    if result is None:
+        click.echo(f"process {processes.index}: its chunks are done; process 0 writes the report")
+        return
     click.echo(summary(result.report))
     click.echo("wrote " + ", ".join(str(p) for p in result.paths))

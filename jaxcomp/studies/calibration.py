@@ -27,10 +27,20 @@ on the number of devices. Truth draws are per world too: world w is the same for
 every N > w. Worlds that fault (following error, overspeed, joint limit: what stops the CPU
 simulator and the real arm) are counted and left out of the statistics.
 
+Scale (``run_study``): the worlds run in chunks of contiguous world ids (``study_chunks``,
+``chunk_results``: truth, simulation, fits and estimates of one chunk's worlds; never two
+plans in a chunk), each finished chunk written to the output folder (``ChunkStore``, resumable)
+and the report made from the joined per-world arrays alone (``calibration_report``), so it does
+not depend on the chunking. Several processes (``processes``, ``jax.distributed``) each run
+their own chunks; process 0 writes the report. The worlds whose samples leave the device are
+the scipy sample's and the first ``keep_samples`` (``sampled_worlds``), those saved as
+recordings.
+
 Units: SI (rad, A, N m, m, s); COM offsets in each link's own frame; ratio A/(N m); viscous
 friction of the truth N m s/rad, the fit's viscous term A s/rad (= ratio x viscous).
 """
 
+import contextlib
 import dataclasses
 import math
 import os
@@ -47,8 +57,10 @@ from tqdm.auto import tqdm
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
 from jaxcomp.files import output_folder, writing
+from jaxcomp.hardware.mjx import MjxSimulator
+from jaxcomp.hardware.truth import model_current_noise
 from jaxcomp.identify.evaluate import random_poses
-from jaxcomp.identify.jax_fit import BatchFit, fit_model
+from jaxcomp.identify.jax_fit import BatchFit, FitModel, fit_model
 from jaxcomp.identify.jax_fit import fit_batch as batch_fit
 from jaxcomp.identify.named_plans import (
     check_plan_name,
@@ -59,23 +71,17 @@ from jaxcomp.identify.named_plans import (
 )
 from jaxcomp.identify.plan import CalibrationPlan
 from jaxcomp.identify.random_plans import plan_seed
+from jaxcomp.recording import Recording
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import json_ready, write_json_atomic
 from jaxcomp.studies.calibration_estimates import (
-    concat_estimates,
     jax_estimates,
+    jax_parameters,
     scipy_estimates,
 )
 from jaxcomp.studies.calibration_figures import plot_coverage, plot_errors
-from jaxcomp.studies.calibration_statistics import (
-    coverage_summary,
-    cramer_rao_summary,
-    gravity_comparison,
-    gravity_summary,
-    identified_ratio_error,
-    parameter_table,
-)
-from jaxcomp.studies.plan_recording import Simulated, simulate
+from jaxcomp.studies.calibration_report import concat_chunks, study_report
+from jaxcomp.studies.plan_recording import simulate
 from jaxcomp.studies.plan_signal import (
     PlanSignal,
     check_every,
@@ -83,8 +89,10 @@ from jaxcomp.studies.plan_signal import (
     plan_signal,
     start_pose,
 )
+from jaxcomp.studies.processes import ONE_PROCESS, Processes, together
 from jaxcomp.studies.setup import MODEL, simulator
-from jaxcomp.studies.truth_draw import TruthSpread, draw_truth, truth_rows
+from jaxcomp.studies.study_chunks import CHUNKS_DIR, Chunk, ChunkStore, study_chunks
+from jaxcomp.studies.truth_draw import TruthSpread, draw_truth
 
 __all__ = [  # the study, and the stages it composes
     "FIGURES",
@@ -101,6 +109,7 @@ __all__ = [  # the study, and the stages it composes
     "plot_coverage",
     "plot_errors",
     "run_study",
+    "sampled_worlds",
     "short_plan",
     "simulate",
     "simulator",
@@ -117,6 +126,12 @@ FIGURES = ("errors.png", "coverage.png")
 FORMAT = "jaxcomp-study-calibration"
 #: m: the least COM prior of a study (its truths may have no COM offset at all).
 MIN_COM_PRIOR = 1e-4
+#: Worlds per chunk by default: a few thousand fill an accelerator (and its memory) well.
+DEFAULT_CHUNK_WORLDS = 4096
+#: Worlds per batch of the gravity-current errors at most (``gravity_current_error_batch``).
+GRAVITY_BATCH = 256
+#: The folder of the kept worlds' recordings (``keep_samples``) in the output folder.
+SAMPLES_DIR = "samples"
 
 
 # ----------------------------------------------------------------------------- the study
@@ -144,6 +159,9 @@ class CalibrationSettings:
         com_prior: m, the JAX fit's COM prior on every link (None: the spread the truths are
             drawn from, ``study_com_prior``: the fit is told the population it is tested on;
             ``jaxcomp fit`` has the model's default, ``fit_model``).
+        chunk_worlds: worlds per chunk (``study_chunks``; None: ``DEFAULT_CHUNK_WORLDS``, the
+            whole study when it has fewer).
+        keep_samples: the recorded samples of the first K worlds are saved (``run_study``).
     """
 
     worlds: int
@@ -158,6 +176,8 @@ class CalibrationSettings:
     poses: int = 1000
     parallel: bool | None = None
     com_prior: float | None = None
+    chunk_worlds: int | None = None
+    keep_samples: int = 0
 
     def __post_init__(self) -> None:
         check_plan_name(self.plan)
@@ -168,6 +188,8 @@ class CalibrationSettings:
             "--poses": (self.poses, 1),
             "--world-batch": (self.world_batch, 1),
             "--fit-batch": (self.fit_batch, 1),
+            "--chunk-worlds": (self.chunk_worlds, 1),
+            "--keep-samples": (self.keep_samples, 0),
         }
         for name, (value, low) in checks.items():
             if value is not None and (
@@ -208,14 +230,11 @@ def baseline_worlds(groups: list[range], sample: int) -> np.ndarray:
 
 
 class _Group(NamedTuple):
-    """The worlds ``rows`` of a study, which record ``plan``: its signal, the simulation, the
-    joint fits and their estimates."""
+    """The worlds ``rows`` of a study, which record ``plan`` (its ``signal``)."""
 
     rows: range
     plan: CalibrationPlan
     signal: PlanSignal
-    simulated: Simulated | None = None
-    fits: BatchFit | None = None
 
     def describe(self, seed: int | None) -> dict:
         """The group's part of the report: worlds [first, stop), plan seed, sweeps, swept
@@ -244,22 +263,57 @@ def _plan_report(name: str, seed: int, groups: list[_Group]) -> dict:
     return {"name": name} | mean | {"groups": per_group}
 
 
-def run_study(
-    settings: CalibrationSettings, *, progress: bool = True, robot: Robot | None = None
-) -> tuple[dict, dict]:
-    """The whole study of ``settings``: (report for study.json, per-world arrays for
-    worlds.npz); see the module docstring. ``progress``: show progress bars; ``robot``: the
-    ``MODEL`` robot to study, whose simulator (``setup.simulator``) and compiled programs it
-    keeps (default: freshly loaded).
+class _Study(NamedTuple):
+    """What every chunk of a study shares: its settings, robot, fit model, plan groups,
+    simulator, poses of the gravity error, the worlds that send their samples to the host
+    (``sampled``: the scipy sample's and the first ``keep_samples``) and the effective MJX
+    batch and sweep layout."""
 
-    With ``plan`` "random:K" the worlds are cut into K contiguous groups (``world_groups``),
-    group g recording its own random plan (seed ``plan_seed(seed, g)``), simulated and fitted
-    on its own; the truths are drawn for all worlds at once (world w is the same for any K).
-    """
-    worlds, seed, plan, every = settings.worlds, settings.seed, settings.plan, settings.every
-    spread, baseline_sample = settings.spread, settings.baseline_sample
-    world_batch, parallel = settings.world_batch, settings.parallel
-    if baseline_sample:
+    settings: CalibrationSettings
+    robot: Robot
+    model: FitModel
+    groups: list[_Group]
+    sim: MjxSimulator
+    poses: np.ndarray
+    sample: np.ndarray
+    sampled: np.ndarray
+    world_batch: int
+    fit_batch: int
+    parallel: bool
+    chunk_worlds: int
+
+    def run_settings(self) -> dict:
+        """What a resumed study must share with the run whose chunks it keeps (JSON)."""
+        s = self.settings
+        return {
+            "model": self.robot.name,
+            "joints": list(self.robot.joint_names),
+            "worlds": s.worlds,
+            "seed": s.seed,
+            "plan": s.plan,
+            "plans": [gr.plan.to_dict() for gr in self.groups],
+            "every": s.every,
+            "spread": dataclasses.asdict(s.spread),
+            "baseline_sample": s.baseline_sample,
+            "keep_samples": s.keep_samples,
+            "poses": s.poses,
+            "com_prior": s.com_prior or study_com_prior(s.spread),
+            "parallel_sweeps": self.parallel,
+            "chunk_worlds": self.chunk_worlds,
+        }
+
+
+def sampled_worlds(groups: list[range], sample: np.ndarray, keep_samples: int) -> np.ndarray:
+    """The worlds whose samples come to the host: the scipy ``sample`` (the first worlds of
+    each plan group, ``baseline_worlds``) and the first ``keep_samples`` worlds, ascending.
+    In each group they are its first worlds (a prefix), as ``simulate(keep=)`` takes them."""
+    first = np.arange(min(keep_samples, groups[-1].stop))
+    return np.union1d(sample, first).astype(np.int64)
+
+
+def _setup(settings: CalibrationSettings, robot: Robot | None) -> _Study:
+    """The study's shared parts (``_Study``), plans checked and the simulator made."""
+    if settings.baseline_sample:
         try:
             import pinocchio  # noqa: F401  (the scipy fit needs it: fail now, not at the end)
         except ImportError:
@@ -267,171 +321,231 @@ def run_study(
                 "--baseline-sample needs pinocchio (pip install pin); use --baseline-sample 0 "
                 "to skip the scipy fit"
             ) from None
-    t_all = time.perf_counter()
     robot = load_robot(MODEL) if robot is None else robot
-    count = plan_count(plan)
+    plan, seed, every = settings.plan, settings.seed, settings.every
     groups = []
-    for g, rows in enumerate(world_groups(worlds, count)):
+    for g, rows in enumerate(world_groups(settings.worlds, plan_count(plan))):
         the_plan = named_plan(robot, plan, seed=seed, group=g)
         groups.append(_Group(rows, the_plan, plan_signal(the_plan, start_pose(robot))))
         check_every(groups[-1].signal, every)
     sim = simulator(settings.devices, robot)
-    model = fit_model(robot, settings.com_prior or study_com_prior(spread))  # m, every link
-    truth = draw_truth(robot, worlds, seed, spread)
-    backend, mesh = jax.default_backend(), sim.mesh
-    world_batch = world_batch or (worlds if backend != "cpu" else mesh.size)
-    parallel = backend != "cpu" if parallel is None else bool(parallel)
-    sample = baseline_worlds([gr.rows for gr in groups], baseline_sample)
-    keep = len(sample)
-    timing = {"setup": time.perf_counter() - t_all}
+    model = fit_model(robot, settings.com_prior or study_com_prior(settings.spread))
+    backend = jax.default_backend()
+    chunk = min(settings.chunk_worlds or DEFAULT_CHUNK_WORLDS, settings.worlds)
+    sample = baseline_worlds([gr.rows for gr in groups], settings.baseline_sample)
+    return _Study(
+        settings,
+        robot,
+        model,
+        groups,
+        sim,
+        random_poses(robot, settings.poses, seed=seed),
+        sample,
+        sampled_worlds([gr.rows for gr in groups], sample, settings.keep_samples),
+        settings.world_batch or (chunk if backend != "cpu" else sim.mesh.size),
+        max(2, settings.fit_batch or chunk),  # one batch shape: a world's fit the same in any
+        backend != "cpu" if settings.parallel is None else bool(settings.parallel),
+        chunk,
+    )
 
+
+def chunk_results(
+    study: _Study, chunk: Chunk, progress: bool = False
+) -> tuple[dict[str, dict[str, np.ndarray]], dict[int, Recording]]:
+    """One chunk of ``study``: its worlds drawn, simulated and fitted. ({"world": rows of
+    ``WORLD_KEYS``, "scipy": the sample's worlds in the chunk (``SCIPY_KEYS``), "timing": s},
+    {world: recording} of the first ``keep_samples`` worlds in it). A world's numbers do not
+    depend on the chunk it is in (its truth, noise and fit are its own; every fit batch
+    has ``fit_batch`` worlds)."""
+    s, gr, rows = study.settings, study.groups[chunk.group], chunk.rows
+    first, count = rows.start, len(rows)
+    truth = draw_truth(study.robot, count, s.seed, s.spread, first=first)
+    ids = np.arange(first, rows.stop)
+    recorded = int(np.isin(ids, study.sampled).sum())  # a prefix of the chunk
     bar = tqdm(
-        total=sum(len(gr.rows) * len(gr.signal.q_ref) for gr in groups),
+        total=count * len(gr.signal.q_ref),
         unit="step",
         unit_scale=True,
-        desc=f"MJX, {worlds} worlds",
+        desc=f"MJX, worlds {first}-{rows.stop - 1}",
         disable=not progress,
+        leave=False,
     )
-    for g, gr in enumerate(groups):
-        rows = slice(gr.rows.start, gr.rows.stop)
-        sampled = np.count_nonzero((sample >= rows.start) & (sample < rows.stop))
-        simulated = simulate(
-            sim,
-            truth_rows(truth, rows),
-            gr.signal,
-            seed=seed,
-            every=every,
-            world_batch=world_batch,
-            keep=rows.start + int(sampled),  # global index: the group's first worlds
-            progress=bar.update,
-            parallel=parallel,
-            offset=gr.rows.start,
-        )
-        groups[g] = gr._replace(simulated=simulated)
+    simulated = simulate(
+        study.sim,
+        truth,
+        gr.signal,
+        seed=s.seed,
+        every=s.every,
+        world_batch=study.world_batch,
+        keep=first + recorded,  # global index: the chunk's first worlds
+        progress=bar.update,
+        parallel=study.parallel,
+        offset=first,
+    )
     bar.close()
-    for key in groups[0].simulated.timing:
-        timing[key] = sum(gr.simulated.timing[key] for gr in groups)
-    fault_step = np.concatenate([gr.simulated.fault_step for gr in groups])
-    recordings = [r for gr in groups for r in gr.simulated.recordings]
-    world_steps = sum(gr.simulated.world_steps for gr in groups)
-
+    timing = dict(simulated.timing)
     t0 = time.perf_counter()
-    bar = tqdm(total=worlds, unit="fit", desc="JAX fits", disable=not progress)
-    for g, gr in enumerate(groups):
-        moments = gr.simulated.moments
-        fits = batch_fit(model, moments, batch=settings.fit_batch, mesh=mesh, progress=bar.update)
-        groups[g] = gr._replace(fits=fits)
-    bar.close()
+    fits = _fit(study, simulated.moments, count)
     timing["fit_jax"] = time.perf_counter() - t0
-    timing["fit_jax_compile"] = sum(gr.fits.compile_seconds for gr in groups)
-    timing["fit_jax_run"] = fit_seconds = sum(gr.fits.seconds for gr in groups)
-    converged = np.concatenate([np.asarray(gr.fits.solution.converged) for gr in groups])
-    noise_estimate = np.concatenate([np.asarray(gr.fits.solution.sigma) for gr in groups])
-
+    timing["fit_jax_compile"], timing["fit_jax_run"] = fits.compile_seconds, fits.seconds
     t0 = time.perf_counter()
-    pose_set = random_poses(robot, settings.poses, seed=seed)
-    jax_est = concat_estimates(
-        [
-            jax_estimates(
-                robot,
-                model,
-                truth_rows(truth, slice(gr.rows.start, gr.rows.stop)),
-                gr.simulated,
-                gr.fits,
-                pose_set,
-            )
-            for gr in groups
-        ]
+    gravity_batch = min(study.fit_batch, GRAVITY_BATCH)  # one shape in every chunk
+    jax_est = jax_estimates(
+        study.robot, study.model, truth, simulated, fits, study.poses, gravity_batch
     )
     timing["evaluate"] = time.perf_counter() - t0
-
     t0 = time.perf_counter()
-    bar = tqdm(total=keep, unit="fit", desc="scipy fits", disable=not progress or not keep)
+    local = np.flatnonzero(np.isin(ids, study.sample))
+    bar = tqdm(total=len(local), unit="fit", desc="scipy fits", leave=False,
+               disable=not progress or not len(local))  # fmt: skip
+    recordings = simulated.recordings
     scipy_est, failed = scipy_estimates(
-        robot, truth, sample, recordings, jax_est, pose_set, progress=bar.update
-    )
-    on_m = jax_est.rows(sample)
+        study.robot, truth, local, [recordings[i] for i in local], jax_est, study.poses,
+        progress=bar.update, batch=gravity_batch,
+    )  # fmt: skip
     bar.close()
     timing["fit_scipy"] = time.perf_counter() - t0
-
-    n = model.n
-    jax_table = parameter_table(jax_est, 2 * n)
-    scipy_table = parameter_table(scipy_est, 2 * n) if keep else {}
-    sigma = noise_estimate[jax_est.ok]
-    plan_group = np.concatenate([np.full(len(gr.rows), g) for g, gr in enumerate(groups)])
-    timing["total"] = time.perf_counter() - t_all
-    report = {
-        "format": FORMAT,
-        "version": 1,
-        "model": robot.name,
-        "seed": seed,
-        "worlds": worlds,
-        "plan": _plan_report(plan, seed, groups),
-        "record_every": every,
-        "record_rate_hz": 1.0 / (CONTROL_PERIOD * every),
-        "truth": dataclasses.asdict(spread) | {"noise": float(truth.current_noise[0])},
-        "fit_com_prior": settings.com_prior or study_com_prior(spread),
-        "backend": backend,
-        "devices": [str(d) for d in mesh.devices.flat],
-        "world_batch": world_batch,
-        "parallel_sweeps": parallel,
-        "faulted_worlds": int((fault_step >= 0).sum()),
-        "jax": {
-            "converged": int(converged.sum()),
-            "used": int(jax_est.ok.sum()),
-            "noise_estimate_median": float(np.median(sigma)) if sigma.size else math.nan,
-            "parameters": jax_table,
-            "gravity_current_error": gravity_summary(
-                np.where(jax_est.ok[:, None], jax_est.gravity, np.nan)
-            ),
-            "largest_identified_ratio_error": identified_ratio_error(jax_est, n),
-            "on_scipy_worlds": {
-                "parameters": {
-                    k: {"rmse": v["rmse"], "relative_rmse": v.get("relative_rmse")}
-                    for k, v in parameter_table(on_m, 2 * n).items()
-                    if k in scipy_table
-                },
-                "gravity_current_error": gravity_summary(on_m.gravity[on_m.ok]),
-                "pooled_gravity_current_error": gravity_comparison(on_m, scipy_est),
-            },
-        },
-        "scipy": {
-            "worlds": keep,
-            "plans": len(np.unique(plan_group[sample])),
-            "failed": failed,
-            "parameters": scipy_table,
-            "gravity_current_error": gravity_summary(scipy_est.gravity),
-        },
-        "coverage": {"jax": coverage_summary(jax_est), "scipy": coverage_summary(scipy_est)},
-        "cramer_rao": cramer_rao_summary(jax_table, jax_est.names),
-        "timing_s": timing,
-        "throughput": {
-            "world_steps_per_s": world_steps / max(timing["simulate_stepping"], 1e-9),
-            "jax_fits_per_min": 60.0 * worlds / max(fit_seconds, 1e-9),
-            "scipy_fits_per_min": 60.0 * keep / max(timing["fit_scipy"], 1e-9) if keep else None,
-        },
-    }
-    arrays = {
-        "parameter_names": np.array(jax_est.names),
-        "plan_group": plan_group,
+    timing["world_steps"] = float(simulated.world_steps)
+    sol = fits.solution
+    world = {
+        "plan_group": np.full(count, chunk.group),
         "truth": jax_est.truth,
         "jax_estimate": jax_est.estimate,
         "jax_std": jax_est.std,
         "jax_identified": jax_est.identified,
-        "jax_converged": converged,
+        "jax_converged": np.asarray(sol.converged),
         "jax_ok": jax_est.ok,
-        "jax_noise_estimate": noise_estimate,
+        "jax_noise_estimate": np.asarray(sol.sigma),
         "jax_gravity_current_error": jax_est.gravity,
         "jax_gravity_current_error_pooled": jax_est.gravity_pooled,
         "swept": jax_est.swept,
-        "scipy_worlds": sample,
+        "fault_step": simulated.fault_step,
+    }
+    scipy = {
+        "scipy_worlds": ids[local],
         "scipy_estimate": scipy_est.estimate,
         "scipy_std": scipy_est.std,
         "scipy_gravity_current_error": scipy_est.gravity,
         "scipy_gravity_current_error_pooled": scipy_est.gravity_pooled,
-        "fault_step": fault_step,
+        "scipy_failed_world": np.array([f["world"] + first for f in failed], np.int64),
+        "scipy_failed_error": np.array([f["error"] for f in failed], str),
     }
-    return report, arrays
+    kept = {int(w): recordings[i] for i, w in enumerate(ids[:recorded]) if w < s.keep_samples}
+    return {"world": world, "scipy": scipy, "timing": timing}, kept
+
+
+def _fit(study: _Study, moments, count: int) -> BatchFit:
+    """The joint fits of a chunk's ``count`` worlds, ``study.fit_batch`` at a time (a chunk
+    of fewer worlds padded with copies of its last: one compiled batch for every chunk)."""
+    pad = max(study.fit_batch - count, 0)
+    if pad:
+        idx = np.minimum(np.arange(count + pad), count - 1)
+        moments = jax.tree.map(lambda a: np.asarray(a)[idx], moments)
+    fits = batch_fit(study.model, moments, batch=study.fit_batch, mesh=study.sim.mesh)
+    if not pad:
+        return fits
+    return fits._replace(
+        solution=jax.tree.map(lambda a: np.asarray(a)[:count], fits.solution),
+        coef=fits.coef[:count],
+        std=fits.std[:count],
+    )
+
+
+def run_study(
+    settings: CalibrationSettings,
+    *,
+    progress: bool = True,
+    robot: Robot | None = None,
+    folder: Path | None = None,
+    resume: bool = False,
+    processes: Processes = ONE_PROCESS,
+) -> tuple[dict, dict] | None:
+    """The whole study of ``settings``: (report for study.json, per-world arrays for
+    worlds.npz); see the module docstring. ``progress``: show progress bars; ``robot``: the
+    ``MODEL`` robot to study, whose simulator (``setup.simulator``) and compiled programs it
+    keeps (default: freshly loaded).
+
+    The worlds run in chunks (``study_chunks``: ``chunk_worlds`` contiguous worlds of one
+    plan group each, ``chunk_results``); the report is made from the chunks' joined per-world
+    arrays (``calibration_report``), whatever the chunking. With a ``folder`` (the study's
+    output folder, created and locked by the caller), each finished chunk is written to
+    ``folder``/chunks (``ChunkStore``) and ``resume`` keeps those of an interrupted run of the
+    same settings; the samples of the first ``keep_samples`` worlds go to ``folder``/samples.
+    With several ``processes`` (``processes.start_processes``) each runs its own chunks
+    (``Processes.mine``) into the shared ``folder`` and process 0 alone returns the report
+    (the others None).
+
+    With ``plan`` "random:K" the worlds are cut into K contiguous groups (``world_groups``),
+    group g recording its own random plan (seed ``plan_seed(seed, g)``); the truths are drawn
+    per world (world w is the same for any K).
+    """
+    t_all = time.perf_counter()
+    if folder is None and (settings.keep_samples or processes.count > 1 or resume):
+        raise InputError("--keep-samples, --resume and --distributed need an output folder")
+    study = together(processes, lambda: _setup(settings, robot), "to set the study up")
+    chunks = study_chunks([gr.rows for gr in study.groups], study.chunk_worlds)
+    store = None if folder is None else ChunkStore(Path(folder) / CHUNKS_DIR)
+    lead = processes.index == 0
+    if store is not None:
+        together(processes, lambda: lead and store.prepare(study.run_settings(), resume),
+                 "to prepare the output folder")  # fmt: skip
+    setup_s = time.perf_counter() - t_all
+    mine = processes.mine(chunks)
+    kept: dict[int, dict] = {}
+
+    def run_mine() -> None:
+        bar = tqdm(total=sum(len(c.rows) for c in mine), unit="world",
+                   desc=f"{settings.worlds} worlds", disable=not progress)  # fmt: skip
+        for chunk in mine:
+            if store is not None and store.done(chunk):
+                bar.update(len(chunk.rows))
+                continue
+            parts, recordings = chunk_results(study, chunk, progress)
+            for w, rec in recordings.items():
+                rec.save(Path(folder) / SAMPLES_DIR / f"world_{w:05d}.npz")
+            if store is None:
+                kept[chunk.index] = parts
+            else:
+                store.write(chunk, parts)
+            bar.update(len(chunk.rows))
+        bar.close()
+
+    together(processes, run_mine, "to run its chunks")
+    if not lead:
+        return None
+    t0 = time.perf_counter()
+    parts = [kept[c.index] if store is None else store.read(c) for c in chunks]
+    arrays, timing = concat_chunks(parts, *jax_parameters(study.model))
+    world_steps = timing.pop("world_steps")
+    timing = {"setup": setup_s} | timing | {"report": time.perf_counter() - t0}
+    timing["total"] = time.perf_counter() - t_all
+    return study_report(arrays, _describe(study, timing, world_steps, processes)), arrays
+
+
+def _describe(study: _Study, timing: dict, world_steps: float, processes: Processes) -> dict:
+    """The report's description of the run (``study_report``'s ``run``)."""
+    s, sim = study.settings, study.sim
+    noise = model_current_noise(study.robot) if s.spread.noise is None else s.spread.noise
+    return {
+        "format": FORMAT,
+        "version": 1,
+        "model": study.robot.name,
+        "seed": s.seed,
+        "worlds": s.worlds,
+        "plan": _plan_report(s.plan, s.seed, study.groups),
+        "record_every": s.every,
+        "record_rate_hz": 1.0 / (CONTROL_PERIOD * s.every),
+        "truth": dataclasses.asdict(s.spread) | {"noise": float(noise)},
+        "fit_com_prior": s.com_prior or study_com_prior(s.spread),
+        "backend": jax.default_backend(),
+        "devices": [str(d) for d in sim.mesh.devices.flat],
+        "processes": processes.count,
+        "chunk_worlds": study.chunk_worlds,
+        "world_batch": study.world_batch,
+        "parallel_sweeps": study.parallel,
+        "timing_s": timing,
+        "world_steps": world_steps,
+    }
 
 
 # ----------------------------------------------------------------------------- outputs
@@ -470,14 +584,32 @@ class StudyOutputs(NamedTuple):
 
 
 def study_into(
-    out: Path, settings: CalibrationSettings, *, progress: bool = True, robot: Robot | None = None
-) -> StudyOutputs:
+    out: Path,
+    settings: CalibrationSettings,
+    *,
+    progress: bool = True,
+    robot: Robot | None = None,
+    resume: bool = False,
+    processes: Processes = ONE_PROCESS,
+) -> StudyOutputs | None:
     """``run_study`` and ``write_outputs`` into the folder ``out``, created and locked first
-    (``files.output_folder``: FileError before minutes of simulation); nothing is written
-    on error (a folder it created is removed again)."""
-    with output_folder(out) as folder:
-        report, arrays = run_study(settings, progress=progress, robot=robot)
-        return StudyOutputs(report, arrays, write_outputs(folder, report, arrays))
+    (``files.output_folder``: FileError before minutes of simulation); on error nothing is
+    written but the finished chunks (``run_study``: ``resume`` keeps them), and a folder it
+    created and left empty is removed. With several ``processes``, process 0 holds the folder
+    and writes the report; the others write their chunks into it and return None."""
+    if processes.index != 0:
+        together(processes, lambda: None, "to open the output folder")
+        run_study(settings, progress=False, robot=robot, folder=Path(out), resume=resume,
+                  processes=processes)  # fmt: skip
+        return None
+    with contextlib.ExitStack() as stack:
+        folder = together(processes, lambda: stack.enter_context(output_folder(out)),
+                          "to open the output folder")  # fmt: skip
+        report, arrays = run_study(settings, progress=progress, robot=robot, folder=folder,
+                                   resume=resume, processes=processes)  # fmt: skip
+        paths = write_outputs(folder, report, arrays)
+        ChunkStore(folder / CHUNKS_DIR).remove()
+        return StudyOutputs(report, arrays, paths)
 
 
 def summary(report: dict) -> str:

@@ -88,6 +88,14 @@ def jax_truth_vector(model: FitModel, truth: BatchTruth) -> np.ndarray:
     )
 
 
+def jax_parameters(model: FitModel) -> tuple[list[str], list[str]]:
+    """The names and units of the joint fit's ``Estimates`` parameters: ratio, friction,
+    viscous, COM offsets, phase shifts."""
+    n = model.n
+    units = ["A/(N m)"] * n + ["A"] * n + ["A s/rad"] * n + ["m"] * model.K + ["rad"] * n
+    return model.parameter_names() + [f"phase_shift[{j}]" for j in range(n)], units
+
+
 def jax_estimates(
     robot: Robot,
     model: FitModel,
@@ -95,11 +103,14 @@ def jax_estimates(
     simulated: Simulated,
     fits: BatchFit,
     poses: np.ndarray,
+    batch: int | None = None,
 ) -> Estimates:
     """The joint fit's ``BatchFit`` of every world as ``Estimates``: ratio, friction, viscous,
     COM offsets and the phase shifts of each joint's first sweep (rad; the truth's from the
     true COM offsets through the same sweep coefficients). ``ok``: converged, and the world
-    ran the plan without a fault (a real arm would have stopped)."""
+    ran the plan without a fault (a real arm would have stopped). ``batch``: the gravity
+    errors in batches of exactly that many worlds (``gravity_current_error_batch(fixed=)``;
+    None: its default)."""
     sol, n, w = fits.solution, model.n, truth.worlds
     lin = 3 * n
     true = jax_truth_vector(model, truth)
@@ -116,25 +127,34 @@ def jax_estimates(
     nb = len(robot.link_names)
     fit_com = np.zeros((w, nb, 3))
     fit_com[:, model.link_ids] = sol.com.reshape(w, -1, 3)
+    names, units = jax_parameters(model)
     return Estimates(
-        names=model.parameter_names() + [f"phase_shift[{j}]" for j in range(n)],
-        units=["A/(N m)"] * n + ["A"] * n + ["A s/rad"] * n + ["m"] * model.K + ["rad"] * n,
+        names=names,
+        units=units,
         estimate=np.concatenate([sol.ratio, sol.friction, sol.viscous, sol.com, phase], axis=1),
         truth=np.concatenate([true, true_phase], axis=1),
         std=np.concatenate([fits.std, np.where(phase_std > 0, phase_std, np.nan)], axis=1),
         identified=np.concatenate([ident, ident[:, :n] & (phase_std > 0)], axis=1),
         ok=np.asarray(sol.converged, bool) & (simulated.fault_step < 0),
-        **_gravity_errors(robot, swept, truth.ratio, truth.com_offset, sol.ratio, fit_com, poses),
+        **_gravity_errors(
+            robot, swept, batch, truth.ratio, truth.com_offset, sol.ratio, fit_com, poses
+        ),
         swept=swept,
     )
 
 
-def _gravity_errors(robot: Robot, swept: np.ndarray, *args: np.ndarray) -> dict[str, np.ndarray]:
+def _gravity_errors(
+    robot: Robot, swept: np.ndarray, batch: int | None, *args: np.ndarray
+) -> dict[str, np.ndarray]:
     """``gravity`` and ``gravity_pooled`` (over the ``swept`` joints) of ``Estimates`` (the
-    other arguments: those of ``gravity_current_error_batch``)."""
+    other arguments: those of ``gravity_current_error_batch``; ``batch`` as ``jax_estimates``
+    takes it)."""
+    kw = {} if batch is None else {"batch": batch, "fixed": True}
     return {
-        "gravity": gravity_current_error_batch(robot, *args),
-        "gravity_pooled": gravity_current_error_batch(robot, *args, pooled=True, joints=swept),
+        "gravity": gravity_current_error_batch(robot, *args, **kw),
+        "gravity_pooled": gravity_current_error_batch(
+            robot, *args, pooled=True, joints=swept, **kw
+        ),
     }
 
 
@@ -146,10 +166,12 @@ def scipy_estimates(
     jax: Estimates,
     poses: np.ndarray,
     progress: Callable[[], None] | None = None,
+    batch: int | None = None,
 ) -> tuple[Estimates, list[dict]]:
     """The paper's scipy fit of the M worlds ``worlds`` (indices into ``truth`` and ``jax``),
     whose ``recordings`` these are: ratio and friction as ``Estimates`` (identified where the
-    joint fit's are), and the fits that failed (their world index and the error)."""
+    joint fit's are), and the fits that failed (their world index and the error); ``batch``
+    as ``jax_estimates`` takes it."""
     if recordings:  # pinocchio, a heavy optional dependency: only when there is a fit to do
         from jaxcomp.identify.baseline import fit_baseline
     m, n, nb = len(recordings), truth.ratio.shape[1], len(robot.link_names)
@@ -172,7 +194,7 @@ def scipy_estimates(
     ratio = np.where(ok[:, None], est[:, :n], 1.0)
     true_ratio, true_com = truth.ratio[worlds], truth.com_offset[worlds]
     swept = jax.swept[worlds]
-    gravity = _gravity_errors(robot, swept, true_ratio, true_com, ratio, com, poses)
+    gravity = _gravity_errors(robot, swept, batch, true_ratio, true_com, ratio, com, poses)
     gravity["gravity"][~ok] = np.nan
     gravity["gravity_pooled"][~ok] = np.nan
     cut = slice(0, 2 * n)

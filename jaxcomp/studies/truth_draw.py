@@ -63,12 +63,16 @@ class TruthSpread:
             raise InputError("type spread and headroom must be < 1")
 
 
-def draw_truth(robot: Robot, worlds: int, seed: int, spread: TruthSpread) -> BatchTruth:
-    """``BatchTruth`` of ``worlds`` true robots drawn from ``seed`` (see ``TruthSpread``).
+def draw_truth(
+    robot: Robot, worlds: int, seed: int, spread: TruthSpread, first: int = 0
+) -> BatchTruth:
+    """``BatchTruth`` of the ``worlds`` true robots ``first``, ..., ``first + worlds - 1`` drawn
+    from ``seed`` (see ``TruthSpread``).
 
     Each quantity has its own stream and world w is row w of it, so world w is the same for
-    any ``worlds`` > w. Friction torques scale the model's (``truth_centre``).
-    Payload 0, gravity the model's (upright).
+    any ``worlds`` > w, and a range of worlds is drawn without the ones before it (each
+    stream advanced past their draws: one 64-bit PCG64 output per uniform double). Friction
+    torques scale the model's (``truth_centre``). Payload 0, gravity the model's (upright).
     """
     model = fit_model(robot)
     n, nb = model.n, len(robot.link_names)
@@ -76,18 +80,23 @@ def draw_truth(robot: Robot, worlds: int, seed: int, spread: TruthSpread) -> Bat
     types = sorted(set(labels))
     type_of = np.array([types.index(t) for t in labels])
 
-    def rng(k: int) -> np.random.Generator:
-        return np.random.default_rng([seed, TRUTH_STREAM, k])
+    def rng(k: int, shape: tuple[int, ...]) -> np.random.Generator:
+        """Stream k, past the draws of the worlds before ``first`` (rows of ``shape``)."""
+        bits = np.random.PCG64(np.random.SeedSequence([seed, TRUTH_STREAM, k]))
+        return np.random.Generator(bits.advance(first * math.prod(shape[1:])))
+
+    def uniform(k: int, low: float, high: float, shape: tuple[int, ...]) -> np.ndarray:
+        return rng(k, shape).uniform(low, high, shape)
 
     def off(k: int, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:  # U(lo, hi), sign
-        return rng(k).uniform(*spread.model_error, shape), np.where(
-            rng(k + 1).random(shape) < 0.5, -1.0, 1.0
+        return uniform(k, *spread.model_error, shape), np.where(
+            uniform(k + 1, 0.0, 1.0, shape) < 0.5, -1.0, 1.0
         )
 
     ratio0 = RobotParams.nominal(robot).ratio
     mag, sign = off(0, (worlds, len(types)))
     ratio = ratio0 * (1 + sign * mag)[:, type_of]
-    ratio *= 1 + rng(2).uniform(-1, 1, (worlds, n)) * spread.type_spread
+    ratio *= 1 + uniform(2, -1, 1, (worlds, n)) * spread.type_spread
     ratio_c, friction_c = truth_centre(robot)
     torque0 = friction_loss_torque(friction_c, ratio_c)  # N m
     mag, sign = off(3, (worlds, n))
@@ -96,8 +105,8 @@ def draw_truth(robot: Robot, worlds: int, seed: int, spread: TruthSpread) -> Bat
     friction = ratio * torque0 * (1 + sign * mag)
     moved = np.zeros(nb, bool)
     moved[model.link_ids] = True
-    com = rng(5).uniform(-1, 1, (worlds, nb, 3)) * spread.com_offset * moved[None, :, None]
-    viscous = rng(6).uniform(0, 1, (worlds, n)) * spread.viscous
+    com = uniform(5, -1, 1, (worlds, nb, 3)) * spread.com_offset * moved[None, :, None]
+    viscous = uniform(6, 0, 1, (worlds, n)) * spread.viscous
     return BatchTruth.from_arrays(
         robot,
         ratio,

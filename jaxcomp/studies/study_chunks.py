@@ -1,0 +1,149 @@
+"""A study's worlds in chunks: their layout, and each finished chunk's results on disk.
+
+A study of any number of worlds runs in chunks of contiguous global world ids
+(``study_chunks``), cut at the boundaries of the worlds' plan groups too (a chunk records one
+plan). Each finished chunk's per-world results go to one file in the study's output folder
+(``ChunkStore``: ``OUT/chunks/worlds_<first>_<stop>.npz``, written atomically: temp file +
+rename), beside the settings they belong to (``chunks/settings.json``). A resumed study
+(``ChunkStore.prepare(resume=True)``) keeps the chunks already there after checking that
+they belong to the same settings (one ``InputError`` naming what differs, as
+``jaxcomp calibrate --resume`` does: ``recording.setting_differences``).
+
+A chunk file holds flat arrays: ``<part>.<name>`` for the parts of ``ChunkStore.write``
+(e.g. ``world.truth``, ``scipy.estimate``, ``timing.simulate``).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from jaxcomp.errors import InputError
+from jaxcomp.files import atomic_output, reading, writing
+from jaxcomp.recording import setting_differences
+from jaxcomp.robot_params import json_ready, write_json_atomic
+
+#: The folder of the chunk files inside a study's output folder.
+CHUNKS_DIR = "chunks"
+#: The settings the chunk files belong to, in ``CHUNKS_DIR``.
+SETTINGS_FILE = "settings.json"
+
+
+class Chunk(NamedTuple):
+    """Chunk ``index`` of a study: the global world ids ``rows``, all of plan group
+    ``group``."""
+
+    index: int
+    group: int
+    rows: range
+
+
+def study_chunks(groups: Sequence[range], size: int) -> list[Chunk]:
+    """The chunks of at most ``size`` worlds of the contiguous plan ``groups`` (covering the
+    worlds 0..N-1 in order): each group cut from its first world, the last chunk of a group
+    shorter. InputError when ``size`` < 1."""
+    if isinstance(size, bool) or int(size) != size or size < 1:
+        raise InputError(f"--chunk-worlds must be an integer >= 1, got {size}")
+    size = int(size)
+    cuts = [(g, range(a, min(a + size, rows.stop))) for g, rows in enumerate(groups)
+            for a in range(rows.start, rows.stop, size)]  # fmt: skip
+    return [Chunk(i, g, rows) for i, (g, rows) in enumerate(cuts)]
+
+
+def flatten(parts: Mapping[str, Mapping[str, Any]]) -> dict[str, np.ndarray]:
+    """{part: {name: array}} as the flat {"part.name": array} of a chunk file."""
+    return {f"{p}.{k}": np.asarray(v) for p, arrays in parts.items() for k, v in arrays.items()}
+
+
+def unflatten(flat: Mapping[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
+    """A chunk file's flat arrays as {part: {name: array}} (``flatten`` undone)."""
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for key, value in flat.items():
+        part, _, name = key.partition(".")
+        out.setdefault(part, {})[name] = value
+    return out
+
+
+class ChunkStore:
+    """The finished chunks of a study in ``folder`` (``OUT/chunks``), see the module
+    docstring. ``prepare`` first (one process), then ``done``/``write``/``read`` per chunk
+    (any process sharing the folder), ``remove`` once the report is written."""
+
+    def __init__(self, folder: Path):
+        self.folder = Path(folder)
+
+    def path(self, chunk: Chunk) -> Path:
+        """The file of ``chunk``'s results."""
+        return self.folder / f"worlds_{chunk.rows.start:09d}_{chunk.rows.stop:09d}.npz"
+
+    def prepare(self, settings: Mapping[str, Any], resume: bool) -> int:
+        """Get the folder ready for a study of ``settings`` (JSON-able): with ``resume``, keep
+        the chunk files of an earlier run of the same settings (InputError naming what
+        differs otherwise); without it, refuse a folder that holds an earlier run's chunks
+        (InputError: ``--resume`` continues it). The number of chunk files kept."""
+        stored = self.folder / SETTINGS_FILE
+        files = sorted(self.folder.glob("worlds_*.npz")) if self.folder.is_dir() else []
+        now = json.loads(json.dumps(json_ready(dict(settings))))
+        if stored.is_file() or files:
+            if not resume:
+                raise InputError(
+                    f"{self.folder} holds the partial results of an interrupted study "
+                    f"({len(files)} chunks): --resume continues it; remove {self.folder} to "
+                    "start over"
+                )
+            earlier = _read_json(stored)
+            differ = (
+                "its settings are unreadable"
+                if not isinstance(earlier, dict)
+                else setting_differences(earlier, now)
+            )
+            if differ:
+                raise InputError(
+                    f"cannot resume the study in {self.folder.parent}: {differ} (start over in "
+                    f"another folder, or remove {self.folder})"
+                )
+            return len(files)
+        with writing(self.folder):
+            self.folder.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(stored, now)
+        return 0
+
+    def done(self, chunk: Chunk) -> bool:
+        """Whether ``chunk``'s results are on disk."""
+        return self.path(chunk).is_file()
+
+    def write(self, chunk: Chunk, parts: Mapping[str, Mapping[str, Any]]) -> Path:
+        """Write ``chunk``'s results ({part: {name: array}}) atomically."""
+        path = self.path(chunk)
+        with atomic_output(path) as tmp, open(tmp, "wb") as f:
+            np.savez(f, **flatten(parts))
+        return path
+
+    def read(self, chunk: Chunk) -> dict[str, dict[str, np.ndarray]]:
+        """``chunk``'s results as written ({part: {name: array}}); InputError when missing
+        (a process that does not share the folder wrote it elsewhere)."""
+        path = self.path(chunk)
+        if not path.is_file():
+            raise InputError(
+                f"{path} is missing: every process of a study must write into the same --out "
+                "folder (a shared file system)"
+            )
+        with reading(path), np.load(path) as data:
+            return unflatten({k: data[k] for k in data.files})
+
+    def remove(self) -> None:
+        """Remove the folder and its chunk files (the study's report holds them all)."""
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def _read_json(path: Path) -> Any:
+    """The JSON in ``path``; None when it is missing or not JSON."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
