@@ -423,3 +423,47 @@ def test_closed_loop_sharded_stops_and_holds():
     )
     assert out.returncode == 0, out.stderr[-3000:]
     assert "closed loop sharded ok" in out.stdout
+
+
+def test_light_joint_friction_solve_converges(tmp_path):
+    """The friction-loss solve converges on a light distal joint (``LS_ITERATIONS``).
+
+    A state of the calibration study (``serial_arm(31, n=6, continuous=(0, 3))``, its world
+    261, plan random:4 group 1, sweep 2, step 1030) where the last roll joint (1.8e-4 kg m^2,
+    friction loss 1.35 N m) sticks: with the line search capped at 12 steps the Newton solve
+    stopped with a gradient of 1.47 N m and the joint reached -2.2 rad/s in this one step (an
+    overspeed fault in 671 of the study's 1024 worlds, never on the CPU Simulator)."""
+    from mujoco.mjx._src import solver
+    from odd_arms import serial_arm
+
+    from jaxcomp.hardware.mjx.model import WORLD_MODEL_FIELDS
+    from jaxcomp.hardware.mjx.step import implicitfast_step
+    from jaxcomp.robot import load_robot
+    from jaxcomp.studies.truth_draw import TruthSpread, draw_truth, truth_rows
+
+    path = tmp_path / "light_wrist.xml"
+    path.write_text(serial_arm(31, n=6, continuous=(0, 3)))
+    robot = load_robot(path)
+    truth = truth_rows(draw_truth(robot, 262, 0, TruthSpread()), [261])
+    sim = MjxSimulator(robot)
+    f = {k: jnp.asarray(v[0]) for k, v in sim.world_fields(truth).items()}
+    m = sim._mx.tree_replace({k: f[k] for k in WORLD_MODEL_FIELDS if k in f})
+    qpos = [-1.1885909612824683, -1.3925628773968488, -0.36986310476332523]
+    qpos += [1.1796018047594437, 1.3229811692632665, -1.2083089309194148]
+    qvel = [0.043674238818253996, 0.5317859851026709, 0.0020764718494438246]
+    qvel += [-0.03704584491771476, 0.008857710276969875, -0.0107970808281381]
+    warm = [-58.390835486917304, -0.18541741370240436, -2.9057061693150503]
+    warm += [42.074798157248225, -8.300016117775453, 16.887257402342463]
+    target = [-1.1887383698154108, -1.3880598926175611, -0.3692281280467291]
+    target += [1.178732247465514, 1.3227243072141768, -1.207787412146084]
+    with jax.enable_x64(True):
+        d = sim._d0.replace(
+            qpos=jnp.asarray(qpos),
+            qvel=jnp.asarray(qvel),
+            qacc_warmstart=jnp.asarray(warm),
+            ctrl=f["kp"] * jnp.asarray(target),
+        )
+        _, dq, _, _, d_fwd = jax.jit(implicitfast_step(sim.model, jnp.float64))(m, d)
+        grad = float(jnp.linalg.norm(solver.Context.create(m, d_fwd).grad))
+    assert grad < 1e-6  # N m (capped line search: 1.47)
+    assert abs(float(dq[5])) < 0.05  # rad/s: the joint sticks (capped: 2.2, the limit is 2)

@@ -17,13 +17,15 @@ from jaxcomp.hardware.sim_arm import simulation_spec
 from jaxcomp.robot import Robot
 from jaxcomp.robot_params import BASE_JOINTS, arm_joint_indices
 
-#: Line-search steps per Newton iteration of the constraint solver (MuJoCo's default: 50).
-#: MuJoCo C leaves the line search once it converges; MJX, vmapped, runs every step of it,
-#: so the cap is paid each iteration. The Newton loop's own tolerance still decides when the
-#: solution is found (a capped line search only costs an extra iteration), and the agreement
-#: with the CPU simulator is the same to the last digit; 1.9x the world-steps/s of 50 on an
-#: H100 (65 536 worlds: 9.5e6 against 4.9e6).
-LS_ITERATIONS = 12
+#: Line-search steps per Newton iteration of the constraint solver: MuJoCo's default (50), as
+#: the CPU Simulator's. A cap of 12 (1.9x the world-steps/s on an H100) left the friction-loss
+#: solve unconverged on light joints: a line search stopped at the cap barely lowers the cost,
+#: and the Newton loop then ends on its improvement test (relative to the trace of M, the heavy
+#: joints'). On ``serial_arm(31, n=6, continuous=(0, 3))`` (last roll joint 1.8e-4 kg m^2,
+#: friction loss 1.35 N m) one such step left a gradient of 1.47 N m (converged: 1e-12) and a
+#: friction force of -0.71 N m instead of -0.02 N m: 2.2 rad/s in 1 ms, an overspeed the CPU
+#: Simulator never shows, in 671 of the study's 1024 worlds.
+LS_ITERATIONS = mujoco.MjOption().ls_iterations
 #: Name of the payload body ``build_model(payload=True)`` adds at the end-effector site.
 PAYLOAD_BODY = "jaxcomp_payload"
 #: N m, the friction loss of a friction-free joint: MJX treats a friction row of zero loss as
