@@ -58,7 +58,8 @@ class MjxRecording(NamedTuple):
             ``following_error`` of its target, faster than ``overspeed`` or at a joint limit
             (what stops the CPU Simulator), -1 if none; the MJX worlds keep going regardless.
         every: the recording decimation k.
-        reduced: the final carry of the run's ``Reduction`` (host arrays, a leading axis W),
+        reduced: the final carry of the run's ``Reduction`` (device arrays, a leading axis W:
+            reduce them further there before they come to the host),
             None without one.
     """
 
@@ -246,7 +247,7 @@ def run(
         q_start,
         np.asarray(carry[3])[:w].astype(int),
         every,
-        None if reduce is None else jax.tree.map(lambda a: np.asarray(a)[:w], carry[4]),
+        None if reduce is None else jax.tree.map(lambda a: a[:w], carry[4]),
     )
 
 
