@@ -191,15 +191,27 @@ def concat_moments(parts: Sequence[SweepMoments]) -> SweepMoments:
 _PER_SWEEP = ("joint", "hold", "moments", "count")
 
 
-def take_sweeps(batch: SweepMoments, order: np.ndarray) -> SweepMoments:
-    """A batch of moments with its sweeps (axis 1) taken in ``order`` (indices)."""
-    return batch._replace(**{k: np.take(getattr(batch, k), order, axis=1) for k in _PER_SWEEP})
+def join_sweeps(parts: Sequence[SweepMoments], order: np.ndarray) -> SweepMoments:
+    """``concat_moments(parts)`` with its sweeps (axis 1) taken in ``order`` (indices into the
+    joined sweeps), written once into the result (no joined copy)."""
+    sizes = [p.joint.shape[1] for p in parts]
+    where = np.empty(sum(sizes), np.int64)
+    where[order] = np.arange(len(order))  # the result's column of each joined sweep
+    out = {}
+    for k in _PER_SWEEP:
+        first = getattr(parts[0], k)
+        out[k] = np.empty((first.shape[0], len(order), *first.shape[2:]), first.dtype)
+        for p, cols in zip(parts, np.split(where, np.cumsum(sizes)[:-1]), strict=True):
+            out[k][:, cols] = getattr(p, k)
+    return parts[0]._replace(**out)
 
 
 def stack_worlds(parts: Sequence[SweepMoments]) -> SweepMoments:
     """Batches of moments of the same sweeps in other worlds, joined along the world axis."""
     if not parts:
         raise InputError("no moments to join")
+    if len(parts) == 1:
+        return parts[0]
     return SweepMoments(*(np.concatenate([getattr(p, f) for p in parts]) for f in parts[0]._fields))
 
 

@@ -162,3 +162,29 @@ def test_streamed_sums_are_the_packed_moments(rec):
     np.testing.assert_allclose(got.hold[0], want.hold, rtol=0, atol=1e-12)
     scale = np.abs(want.moments).max()
     np.testing.assert_allclose(got.moments[0], want.moments, rtol=1e-9, atol=1e-11 * scale)
+
+
+def test_join_sweeps_is_concat_then_take():
+    """``join_sweeps`` writes the joined sweeps straight in their order: equal to joining
+    (``concat_moments``) and then taking the sweeps in that order, for random parts."""
+    from jaxcomp.identify.moments import SweepMoments, concat_moments, join_sweeps
+
+    rng = np.random.default_rng(7)
+
+    def part(sweeps: int) -> SweepMoments:
+        return SweepMoments(
+            rng.integers(0, 6, (3, sweeps)),
+            rng.random((3, sweeps, 6)),
+            rng.random((3, sweeps, 4, 4)),
+            rng.integers(0, 9, (3, sweeps)),
+            rng.random((3, 3)),
+            rng.random(3),
+            rng.random((3, 3)),
+        )
+
+    parts = [part(2), part(1), part(3)]
+    order = rng.permutation(6)
+    joined, whole = join_sweeps(parts, order), concat_moments(parts)
+    for k in ("joint", "hold", "moments", "count"):
+        np.testing.assert_array_equal(getattr(joined, k), np.take(getattr(whole, k), order, 1))
+    np.testing.assert_array_equal(joined.gravity, parts[0].gravity)

@@ -28,14 +28,13 @@ from jaxcomp.identify.moments import (
     StreamPlan,
     StreamSums,
     SweepMoments,
-    concat_moments,
+    join_sweeps,
     layout,
     stack_worlds,
     stream_add,
     stream_init,
     stream_plan,
     streamed_moments,
-    take_sweeps,
 )
 from jaxcomp.recording import Recording
 from jaxcomp.studies.plan_signal import (
@@ -244,7 +243,7 @@ def _simulate_parallel(
             streamed_moments(StreamSums(*(a[b * width : (b + 1) * width] for a in sums)), p)
             for b, p in enumerate(plans)
         ]
-        moments.append(take_sweeps(concat_moments(per_lane), order))
+        moments.append(join_sweeps(per_lane, order))
         timing["simulate_moments"] += time.perf_counter() - t0
         faults.append(_plan_fault(rec.fault_step.reshape(n_lane, width), lanes, seg.first))
         mine = int(np.count_nonzero(offset + rows < keep))
