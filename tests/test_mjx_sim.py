@@ -164,6 +164,7 @@ def batch():
     )
 
 
+@pytest.mark.xdist_group("mjx-batch")  # one worker computes the batch fixture
 def test_mjx_agrees_with_the_cpu_simulator(batch):
     """Same truth, no noise, same q_ref in POSITION mode: the tolerances of ``AGREEMENT``,
     through stick-slip and the servo clamped at joint 1's effort limit."""
@@ -183,6 +184,7 @@ def test_mjx_agrees_with_the_cpu_simulator(batch):
     assert (rec.fault_step == -1).all()
 
 
+@pytest.mark.xdist_group("mjx-batch")  # one worker computes the batch fixture
 def test_noise_is_additive_gaussian_and_leaves_the_motion_alone(batch):
     rec = batch["rec"]
     np.testing.assert_array_equal(rec.q[1], rec.q[0])
@@ -217,6 +219,7 @@ def _dynamics(robot, cache={}):  # noqa: B006 - one compiled function per robot
     return cache[id(robot)][1]
 
 
+@pytest.mark.xdist_group("mjx-batch")  # one worker computes the batch fixture
 def test_payload_and_mounting_follow_the_true_dynamics(batch):
     """Friction-free worlds 2 (0.6 kg payload: its own MJX body) and 3 (tilted base): the
     recorded torque is M qacc + C dq + g of jaxcomp's dynamics with the payload folded into
@@ -234,6 +237,7 @@ def test_payload_and_mounting_follow_the_true_dynamics(batch):
         assert np.abs(wrong).max() > 0.1
 
 
+@pytest.mark.xdist_group("mjx-batch")  # one worker computes the batch fixture
 def test_chunks_stream_the_same_samples(batch):
     rec, chunks, calls = batch["rec"], batch["chunks"], batch["calls"]
     t = len(batch["q_ref"])
@@ -308,6 +312,7 @@ def test_closed_loop_refuses_bad_input():
 
 # ----------------------------------------------------------------------------- slow
 @pytest.mark.slow
+@pytest.mark.xdist_group("mjx-batch")  # one worker computes the batch fixture
 def test_float32_decimated_run_tracks_float64(batch):
     """float32, every 2nd sample: within 1e-4 rad and 0.05 A (the current noise) of the
     float64 run (measured: 2.4e-5 rad, 0.036 A at the start of a move, median 1e-4 A)."""

@@ -46,6 +46,9 @@ from jaxcomp.studies.study_chunks import ChunkStore, study_chunks
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 3
 TIMING = ("timing_s", "throughput")  # the only keys a rerun may change
+#: The tests that read the tiny study (``study``, ``whole``) run on one xdist worker, which
+#: computes it once (``--dist loadgroup``).
+TINY_STUDY = pytest.mark.xdist_group("tiny-study")
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +81,9 @@ def _run(out: Path, plan: str, seed: int = SEED, *extra: str):
 
 
 @pytest.fixture(scope="module")
-def study(tiny_plan, tmp_path_factory):
+def study(robot, tiny_plan, tmp_path_factory):
+    """The tiny study from the CLI (on the module's robot: ``load_robot`` returns the robot in
+    use, whose simulator the other runs here share)."""
     out = tmp_path_factory.mktemp("study") / "a"
     return (*_run(out, tiny_plan), out)
 
@@ -228,6 +233,7 @@ def test_unwritable_out_dir_is_refused(tmp_path):
 
 
 # ----------------------------------------------------------------------------- one study
+@TINY_STUDY
 def test_report_files_are_complete_and_valid(study):
     report, arrays, output, out = study
     assert report["fit_com_prior"] == pytest.approx(0.004 / np.sqrt(3))  # the truths' spread
@@ -253,6 +259,7 @@ def test_report_files_are_complete_and_valid(study):
     assert "coverage of +-1.96 std" in output and "ratio jax" in output
 
 
+@TINY_STUDY
 def test_jax_fit_finds_the_true_robots(study, robot):
     """Ratios are drawn 20-30 % off nominal: the fit of 14 s of sweeps at 100 Hz finds them,
     the frictions and the gravity current within a few %, and the noise level."""
@@ -296,6 +303,7 @@ def test_jax_fit_finds_the_true_robots(study, robot):
     assert names[-6:] == [f"phase_shift[{j}]" for j in range(6)]
 
 
+@TINY_STUDY
 def test_same_seed_reproduces_the_numbers(study, tiny_plan, tmp_path):
     first, arrays, _, _ = study
     again, arrays2, _ = _run(tmp_path / "b", tiny_plan)
@@ -491,10 +499,10 @@ def _tiny(plan: str, **kw) -> sc.CalibrationSettings:
 
 
 @pytest.fixture(scope="module")
-def whole(robot, tiny_plan, tmp_path_factory):
-    """The tiny study in one chunk, on the module's robot (its simulator compiled once)."""
-    out = tmp_path_factory.mktemp("whole") / "a"
-    return sc.study_into(out, _tiny(tiny_plan), progress=False, robot=robot)
+def whole(study):
+    """The tiny study in one chunk (``study``, as its files hold it)."""
+    report, arrays, _, _ = study
+    return sc.StudyOutputs(report, arrays, [])
 
 
 def _same(a: sc.StudyOutputs, b: sc.StudyOutputs, skip: tuple[str, ...] = ()) -> None:
@@ -508,6 +516,7 @@ def _same(a: sc.StudyOutputs, b: sc.StudyOutputs, skip: tuple[str, ...] = ()) ->
         np.testing.assert_array_equal(b.arrays[k], v, err_msg=k)
 
 
+@TINY_STUDY
 def test_chunked_interrupted_and_resumed_study_is_the_whole_one(
     whole, robot, tiny_plan, tmp_path, monkeypatch
 ):
@@ -553,6 +562,7 @@ def test_chunked_interrupted_and_resumed_study_is_the_whole_one(
     np.testing.assert_allclose(rec.q, signal.q_ref[::10], atol=0.05)  # it followed the plan
 
 
+@TINY_STUDY
 def test_outputs_are_all_or_nothing(study, tmp_path, monkeypatch):
     report, arrays, _, _ = study
     out = tmp_path / "out"
@@ -584,6 +594,7 @@ def test_short_plan_on_four_worlds(tmp_path):
     assert report["coverage"]["jax"]["identified"]["coverage_95"] >= 0.8
 
 
+@TINY_STUDY
 @pytest.mark.slow
 def test_numbers_do_not_depend_on_the_device_count(tiny_plan, study, tmp_path):
     """Two forced CPU devices (worlds sharded, 2 per MJX run): the same worlds and fits."""
@@ -630,9 +641,11 @@ def uneven_plan(robot):
 @pytest.mark.parametrize("arm", ["gen3_lite", "odd"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_lanes_hold_every_sweep_once_in_plan_order(arm, seed, tmp_path):
-    """``pack_segments`` on random plans: every segment once, at its lane and step, after a
-    restart and a settling hold unless first in its lane; lanes in plan order, none longer
-    than the longest segment, fewer lanes than segments where two fit in one."""
+    """``pack_segments`` on random plans, with and without the transfers between sweeps:
+    every segment once, at its lane and step, after a restart and a settling hold unless first
+    in its lane; lanes in plan order, none longer than the longest segment, fewer lanes than
+    segments where two fit in one; faults counted in the sweeps only; each lane step's plan step
+    (the noise's). Without transfers each segment ends with its last pass."""
     from jaxcomp.hardware.mjx import PLAN, RESTART, SETTLE
     from jaxcomp.robot import load_robot
     from jaxcomp.studies.plan_signal import LANE_STRETCH, pack_segments
@@ -647,8 +660,15 @@ def test_lanes_hold_every_sweep_once_in_plan_order(arm, seed, tmp_path):
     start = sc.start_pose(robot)
     signal = sc.plan_signal(sc.named_plan(robot, "random:3", seed=seed, group=seed), start)
     every, hold = 10, 500
-    seg = sc.plan_segments(signal, start, every)
+    transfers = seed != 1
+    seg = sc.plan_segments(signal, start, every, transfers)
     lanes = pack_segments(seg, every, hold)
+    full = sc.plan_segments(signal, start, every)
+    np.testing.assert_array_equal(seg.sweep_end, full.sweep_end)
+    np.testing.assert_array_equal(seg.end, full.end if transfers else full.sweep_end)
+    for k, s in enumerate(full.signals):  # the last pass step, relative to the segment
+        assert s.direction[seg.sweep_end[k] - 1 - seg.first[k]] != 0
+        assert (s.direction[seg.sweep_end[k] - seg.first[k] :] == 0).all()
     length = seg.end - seg.first
     longest = -(-length.max() // every) * every
     K, (L, B) = len(length), lanes.phase.shape
@@ -663,7 +683,12 @@ def test_lanes_hold_every_sweep_once_in_plan_order(arm, seed, tmp_path):
         np.testing.assert_array_equal(
             lanes.q_ref[at : at + length[k], b], seg.q_ref[: length[k], k]
         )
-        assert (lanes.phase[at : at + length[k], b] == PLAN).all()
+        sweep = seg.sweep_end[k] - seg.first[k]
+        assert (lanes.phase[at : at + sweep, b] == PLAN).all()
+        assert (lanes.phase[at + sweep : at + length[k], b] == SETTLE).all()
+        np.testing.assert_array_equal(
+            lanes.plan_step[at : at + length[k], b], seg.first[k] + np.arange(length[k])
+        )
         mine = np.flatnonzero(lanes.lane == b)
         if k == mine.min():
             assert at == 0
@@ -684,10 +709,12 @@ def test_lanes_hold_every_sweep_once_in_plan_order(arm, seed, tmp_path):
 def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, uneven_plan):
     """``simulate(parallel=True)`` (each plan sweep from rest where the sweep before it ends,
     packed into lanes: two of these sweeps share one) against the plan run in turn, same
-    truths, noise off: the same samples and labels; the swept joints' motion within 0.5 mrad;
-    the held joints within 10 mrad (where Coulomb friction stops a joint under its servo
-    depends on how it got there, and a sweep in its own world starts from a freshly settled
-    rest); the fits within 5e-3 (ratio, relative) and 0.5 mA (friction)."""
+    truths and noise (drawn at each plan step): the same samples and labels; the swept
+    joints' motion within 0.5 mrad; the held joints within 10 mrad (where Coulomb friction
+    stops a joint under its servo depends on how it got there, and a sweep in its own world
+    starts from a freshly settled rest); the fits within 5e-3 (ratio, relative) and 0.5 mA
+    (friction). Without a kept recording the transfers between sweeps are not simulated:
+    fewer steps, the same moments bit for bit."""
     from jaxcomp.studies.plan_signal import pack_segments
 
     start = sc.start_pose(robot)
@@ -703,12 +730,19 @@ def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, uneven
     lanes = pack_segments(seg, 10, 500)
     assert lanes.q_ref.shape[1] == 3  # two sweeps share a lane
 
-    truth = sc.draw_truth(robot, 1, SEED, sc.TruthSpread(noise=0.0))
-    sim = sc.simulator(None)
-    kw = dict(seed=SEED, every=10, keep=1)
-    turn = sc.simulate(sim, truth, signal, world_batch=1, **kw)
-    side = sc.simulate(sim, truth, signal, world_batch=1, parallel=True, **kw)
+    truth = sc.draw_truth(robot, 1, SEED, sc.TruthSpread())
+    sim = sc.simulator(None, robot)
+    kw = dict(seed=SEED, every=10, world_batch=1)
+    turn = sc.simulate(sim, truth, signal, keep=1, **kw)
+    side = sc.simulate(sim, truth, signal, keep=1, parallel=True, **kw)
     assert side.world_steps == 3 * (len(lanes.q_ref) + 500)
+    bare = sc.simulate(sim, truth, signal, keep=0, parallel=True, **kw)
+    short = pack_segments(sc.plan_segments(signal, start, 10, transfers=False), 10, 500)
+    assert bare.world_steps == np.prod(short.q_ref.shape[:2]) + 500 * short.q_ref.shape[1]
+    assert bare.world_steps < 0.9 * side.world_steps and bare.recordings == []
+    for a, b in zip(bare.moments, side.moments, strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(bare.fault_step, side.fault_step)
     np.testing.assert_array_equal(side.fault_step, turn.fault_step)
     for a, b in zip(side.recordings, turn.recordings, strict=True):
         np.testing.assert_array_equal(a.t, b.t)
@@ -728,6 +762,7 @@ def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, uneven
     np.testing.assert_allclose(f_side.friction, f_turn.friction, atol=5e-4)
 
 
+@TINY_STUDY
 @pytest.mark.slow
 def test_two_processes_give_the_one_process_study(whole, tiny_plan, tmp_path):
     """--distributed over two local CPU processes (gloo), one world per chunk, each process

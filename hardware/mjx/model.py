@@ -18,17 +18,20 @@ from jaxcomp.robot import Robot
 from jaxcomp.robot_params import BASE_JOINTS, arm_joint_indices
 
 #: Line-search steps per Newton iteration of the constraint solver (MuJoCo's default, which
-#: the CPU Simulator keeps: 50). MuJoCo C leaves the line search once it converges; MJX,
-#: vmapped, runs as many steps as the slowest world, so the cap is paid each iteration. At 12
-#: (1.9x the world-steps/s of 50) the friction-loss solve was left unconverged on light joints:
-#: a line search stopped at the cap barely lowers the cost, and the Newton loop then ends on
-#: its improvement test (relative to the trace of M, the heavy joints'). On
-#: ``serial_arm(31, n=6, continuous=(0, 3))`` (last roll joint 1.8e-4 kg m^2, friction loss
-#: 1.35 N m) one such step left a gradient of 1.47 N m (converged: 1e-12) and 2.2 rad/s in
-#: 1 ms, an overspeed in 671 of 1024 study worlds that the CPU Simulator never shows. At 20
-#: that step converges (1e-12), none of the 1024 worlds faults, and an H100 steps the Gen3
-#: Lite's 4096-world study at 8.1e6 world-steps/s (12: 9.9e6; 50: about 5e6).
-LS_ITERATIONS = 20
+#: the CPU Simulator keeps: 50). MJX runs the line search as a scan of this many steps (a
+#: vmapped ``lax.cond`` computes every step for every world), so the cap is paid at every
+#: Newton iteration (a ``lax.while_loop`` that stops when the worlds are done was slower on an
+#: H100: 7.1e6 against 8.1e6 world-steps/s, 36 864 worlds). At 12 (1.9x the world-steps/s of
+#: 50) the friction-loss solve was left unconverged on light joints: a line search stopped at
+#: the cap barely lowers the cost, and the Newton loop then ends on its improvement test
+#: (relative to the trace of M, the heavy joints'). On ``serial_arm(31, n=6, continuous=(0,
+#: 3))`` (last roll joint 1.8e-4 kg m^2, friction loss 1.35 N m) one such step left a
+#: gradient of 1.47 N m (converged: 1e-12) and 2.2 rad/s in 1 ms, an overspeed in 671 of 1024
+#: study worlds that the CPU Simulator never shows. That step converges from 14 steps on
+#: (``tests/test_mjx_sim.py``); 16 keeps a margin. H100, 36 864 worlds: 9.96e6 world-steps/s
+#: at 12, 8.43e6 at 20, about 3.4e6 at 8 (the unconverged solves cost more Newton
+#: iterations).
+LS_ITERATIONS = 16
 #: Name of the payload body ``build_model(payload=True)`` adds at the end-effector site.
 PAYLOAD_BODY = "jaxcomp_payload"
 #: N m, the friction loss of a friction-free joint: MJX treats a friction row of zero loss as

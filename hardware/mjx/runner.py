@@ -109,6 +109,7 @@ def run(
     record: Sequence[int] | np.ndarray | None = None,
     world_ids: Sequence[int] | np.ndarray | None = None,
     phase: np.ndarray | None = None,
+    noise_step: np.ndarray | None = None,
 ) -> MjxRecording:
     """``MjxSimulator.run`` (see there): settle, then the plan, chunk by chunk."""
     every = int(every)
@@ -138,6 +139,12 @@ def run(
     phase = np.zeros((t_total, groups), np.int8) if phase is None else np.asarray(phase, np.int8)
     if phase.shape != (t_total, groups) or not np.isin(phase, (PLAN, SETTLE, RESTART)).all():
         raise InputError(f"phase must be ({t_total}, {groups}) of PLAN, SETTLE or RESTART")
+    if noise_step is None:
+        noise_step = np.broadcast_to(np.arange(t_total)[:, None], (t_total, groups))
+    noise_step = np.asarray(noise_step)
+    if noise_step.shape != (t_total, groups) or not np.issubdtype(noise_step.dtype, np.integer):
+        raise InputError(f"noise_step must be ({t_total}, {groups}) step indices")
+    noise_step = noise_step[::every].astype(np.int32)  # the recorded samples' (n_rec, G)
     clock = sim._clock()
     dtype = sim.dtype
     q0 = sim._initial_pose(initial_pose, w)
@@ -173,8 +180,10 @@ def run(
     acc = () if reduce is None else _broadcast(reduce.init, wp, sim.mesh, put_shared)
     carry = (*put((q0.astype(dtype), zeros, zeros, np.full(wp, -1, np.int32))), acc)
     per = chunk // every
-    xs_of = lambda s: jax.tree.map(  # noqa: E731  the rows of the chunk from step s, padded
-        lambda a: put_shared(a[np.minimum(s // every + np.arange(per), len(a) - 1)]), xs
+    rows_of = lambda s, a: put_shared(a[np.minimum(s // every + np.arange(per), len(a) - 1)])  # noqa: E731
+    xs_of = lambda s: jax.tree.map(lambda a: rows_of(s, a), xs)  # noqa: E731  chunk from step s
+    settle_noise = lambda s: put_shared(  # noqa: E731  settling: its own (negative) steps
+        np.repeat((s + np.arange(per) * every)[:, None], groups, 1).astype(np.int32)
     )
     # settle: servo to q0 (target q0 = 0 reference + per-world offset q0)
     settle_fields = dict(fields, offset=put(q0.astype(dtype)))
@@ -187,6 +196,7 @@ def run(
             zero_ref,
             settling,
             xs_of(0),
+            settle_noise(s - settle_steps),
             rows_dev,
             np.int32(s - settle_steps),
             np.int32(min(chunk, settle_steps - s)),
@@ -228,6 +238,7 @@ def run(
             put_shared(ref),
             put_shared(ph),
             xs_of(s),
+            rows_of(s, noise_step),
             rows_dev,
             np.int32(s),
             np.int32(k),
@@ -281,7 +292,8 @@ def _build(
 ) -> Callable:
     """The jitted chunk function of ``run``: (fields, carry, reference rows (chunk, G, n),
     phase rows (chunk, G) (``PLAN``, ``SETTLE``, ``RESTART``), reduction rows
-    (chunk // every, G, ...), recorded worlds (M,), first step, valid steps) ->
+    (chunk // every, G, ...), the recorded samples' noise steps (chunk // every, G), recorded
+    worlds (M,), first step, valid steps) ->
     (carry, recorded (q, dq, current) (M, chunk // every, n)). Carry per world: qpos, qvel,
     qacc_warmstart, fault step (first step with a joint at its limit, beyond
     ``following_error`` rad of its target or faster than ``overspeed`` rad/s), the reduction's
@@ -323,11 +335,13 @@ def _build(
         return carry, (q1, dq1, tau)
 
     def noise(f, t):
-        def one(key, sigma):
-            z = jax.random.normal(jax.random.fold_in(key, t), (n,), dtype)
+        """(W, n) A: each world's current noise at its noise step t (W,)."""
+
+        def one(key, sigma, ti):
+            z = jax.random.normal(jax.random.fold_in(key, ti), (n,), dtype)
             return sigma * z
 
-        return jax.vmap(one)(f["key"], f["noise"])
+        return jax.vmap(one)(f["key"], f["noise"], t)
 
     def reduce(f, acc, xs, q, dq, cur, valid):
         """The reduction over the chunk's recorded samples, world by world."""
@@ -340,13 +354,13 @@ def _build(
 
         return jax.lax.scan(body, acc, (xs, q, dq, cur, valid))[0]
 
-    def chunk_fn(f, carry, qr, ph, xs, rows, start, n_valid):
+    def chunk_fn(f, carry, qr, ph, xs, ck, rows, start, n_valid):
         state, (q, dq, tau) = scan_decimated(
             lambda c, i, x: step(f, c, i, x, start, n_valid), carry[:4], (qr, ph), every
         )
         offsets = jnp.arange(groups) * every
         times = start + offsets
-        cur = f["ratio"][None] * tau + jax.vmap(lambda t: noise(f, t))(times)
+        cur = f["ratio"][None] * tau + jax.vmap(lambda t: noise(f, t[f["group"]]))(ck)
         acc = carry[4]
         if reduce_step is not None:
             acc = reduce(f, acc, xs, q, dq, cur, (times >= 0) & (offsets < n_valid))

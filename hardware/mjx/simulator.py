@@ -193,6 +193,7 @@ class MjxSimulator:
         record: Sequence[int] | np.ndarray | None = None,
         world_ids: Sequence[int] | np.ndarray | None = None,
         phase: np.ndarray | None = None,
+        noise_step: np.ndarray | None = None,
     ) -> MjxRecording:
         """Drive every world through the position targets ``q_ref`` (T, n) rad at 1 kHz.
 
@@ -204,9 +205,11 @@ class MjxSimulator:
         is servoed there for ``settle_steps`` steps (as a fresh CPU ``Simulator``), then
         follows ``q_ref``: step i commands q_ref[i] and records the state after it. Records
         every ``every``-th sample (0, every, ...); the current noise of world w at step i is
-        ``noise_w N(0, 1)`` from ``fold_in(fold_in(PRNGKey(seed), id_w), i)``, ``id_w`` =
-        ``world_ids[w]`` (default w), so it depends neither on chunking nor, with global ids,
-        on how worlds are batched. ``progress(steps_done, steps_total)`` after each chunk;
+        ``noise_w N(0, 1)`` from ``fold_in(fold_in(PRNGKey(seed), id_w), c)``, ``id_w`` =
+        ``world_ids[w]`` (default w) and c = ``noise_step[i, group[w]]`` ((T, G) ints, default i),
+        so it depends neither on chunking nor, with global ids, on how worlds are batched
+        (nor, with the steps of one plan as ``noise_step``, on where a job runs).
+        ``progress(steps_done, steps_total)`` after each chunk;
         ``on_chunk(first_sample, recording_of_the_chunk)`` streams samples; ``keep=False``
         returns q, dq, current as None (bounded host memory). ``record``: only these worlds'
         samples leave the device (default all; q, dq, current then have M = len(record) rows).
@@ -231,6 +234,7 @@ class MjxSimulator:
             record=record,
             world_ids=world_ids,
             phase=phase,
+            noise_step=noise_step,
         )
 
     def run_closed_loop(
@@ -248,6 +252,7 @@ class MjxSimulator:
         seed: int = 0,
         every: int = 0,
         progress: Callable[[int, int], None] | None = None,
+        world_ids: Sequence[int] | np.ndarray | None = None,
     ) -> ClosedLoopResult:
         """Drive every world in CURRENT mode with ``policy`` for ``steps`` steps of 1 ms.
 
@@ -258,7 +263,8 @@ class MjxSimulator:
         limit, as the CPU Simulator's CURRENT mode (the sample before a step, the command
         after it: ``control.loop.run_control`` in lock step, with ``steps`` cycles). The
         measured current is ratio x applied torque + noise; world w's noise at sample k comes
-        from ``fold_in(fold_in(PRNGKey(seed), w), k)``.
+        from ``fold_in(fold_in(PRNGKey(seed), id_w), k)``, ``id_w`` = ``world_ids[w]``
+        (default w): with global ids it does not depend on how the worlds are chunked.
 
         ``policy`` is a ``Policy(init, step)`` of pure JAX functions of one world, vmapped
         over worlds here; ``params`` is a pytree of (W, ...) arrays; ``state`` the initial
@@ -290,6 +296,7 @@ class MjxSimulator:
             seed=seed,
             every=every,
             progress=progress,
+            world_ids=world_ids,
         )
 
     # ------------------------------------------------------------------ shared by the runs

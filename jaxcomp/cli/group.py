@@ -45,9 +45,21 @@ def _lapack_threads() -> None:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
+def _device_memory() -> None:
+    """Take GPU memory as it is needed instead of JAX's default 75 % of the card at start-up:
+    on an 80 GB H100 that preallocation alone holds 1.9 GB of host memory (a process's RSS
+    2.6 GB after its first array, 0.7 GB without). ``XLA_PYTHON_CLIENT_PREALLOCATE`` or
+    ``XLA_PYTHON_CLIENT_MEM_FRACTION`` that the user sets wins."""
+    import os
+
+    if "XLA_PYTHON_CLIENT_MEM_FRACTION" not in os.environ:
+        os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
+
 def main() -> None:
     """Entry point: run the CLI; jaxcomp's own errors, and a file that cannot be read or
     written (``OSError``: read-only, full disk), print one ``error:`` line, status 2."""
+    _device_memory()
     _compilation_cache()
     _lapack_threads()
     try:

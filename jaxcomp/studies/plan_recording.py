@@ -8,8 +8,9 @@ sweep's running sums inside the compiled loop (``MjxSimulator.run(reduce=)`` wit
 host memory does not grow with the plan's length, and only the first ``keep`` worlds' samples
 leave the device (for the scipy fit). The current noise is the simulator's, drawn on the device
 from ``fold_in(fold_in(PRNGKey(seed), id), step)`` with ``id`` the world's index in the study
-(``id * B + b`` for its B lanes of sweeps run side by side), so a world's numbers depend
-neither on how worlds are batched nor on the number of devices.
+and ``step`` the plan step (in whichever lane a sweep runs side by side), so a world's numbers
+depend neither on how worlds are batched, on the number of devices, nor on whether the
+transfers between sweeps are simulated.
 
 Units: SI (rad, rad/s, A, s).
 """
@@ -40,6 +41,7 @@ from jaxcomp.recording import Recording
 from jaxcomp.studies.plan_signal import (
     Lanes,
     PlanSignal,
+    Segments,
     pack_segments,
     plan_segments,
     start_pose,
@@ -113,7 +115,9 @@ def simulate(
     ``parallel``: run the plan's K sweeps side by side (``plan_segments``), each starting at
     rest where the sweep before it ends, packed into B <= K lanes no longer than the longest
     sweep (``pack_segments``): B MJX worlds per true robot for about 1/B of the steps, which
-    fills an accelerator that a few thousand worlds leave idle.
+    fills an accelerator that a few thousand worlds leave idle. Only batches with a world that
+    keeps its recording simulate the transfers between sweeps (with faults not counted there,
+    so that the other batches' worlds, which skip them, have the same numbers).
     """
     n_worlds, steps = truth.worlds, len(signal.q_ref)
     start = start_pose(sim.robot)
@@ -153,7 +157,7 @@ def simulate(
 
 
 def _run(sim, truth, q_ref, start, seed, every, progress, width, steps, length, reduce, record,
-         world_ids, group, timing, phase=None):  # fmt: skip
+         world_ids, group, timing, phase=None, noise_step=None):  # fmt: skip
     """One MJX run of ``simulate``, its timing added to ``timing`` (s: wall time,
     compilation, stepping) and its progress reported in plan steps of the worlds."""
     done = [0]
@@ -179,6 +183,7 @@ def _run(sim, truth, q_ref, start, seed, every, progress, width, steps, length, 
         record=record,
         world_ids=world_ids,
         phase=phase,
+        noise_step=noise_step,
     )
     timing["simulate"] += time.perf_counter() - t0
     timing["simulate_compile"] += sim.compile_seconds - compiled
@@ -215,14 +220,8 @@ def _simulate_parallel(
 ) -> Simulated:
     """``simulate(parallel=True)``: world w of lane b (``pack_segments``) is MJX world
     b * B + w of a run; the sweeps come back in plan order."""
-    seg = plan_segments(signal, start, every)
-    lanes = pack_segments(seg, every, SETTLE_STEPS)
-    n_worlds, steps, (length, n_lane, _) = truth.worlds, len(signal.q_ref), lanes.q_ref.shape
-    plans = [signal_stream_plan(s, every) for s in lanes.signals]
-    order = np.argsort(
-        np.concatenate([_sweep_keys(s, every) for s in lanes.signals]), kind="stable"
-    )
-    reduce = sweep_reduction(plans, sim.n, sim.current_lag)
+    layouts = {}  # with and without the transfers between sweeps
+    n_worlds, steps = truth.worlds, len(signal.q_ref)
     kept = min(max(keep - offset, 0), world_batch, n_worlds)
     moments, recordings, faults = [], [], []
     rec_steps = np.arange(0, steps, every)
@@ -230,12 +229,17 @@ def _simulate_parallel(
     for first in range(0, n_worlds, world_batch):
         rows = np.arange(first, min(first + world_batch, n_worlds))
         width, nk = len(rows), min(kept, len(rows))
+        mine = int(np.count_nonzero(offset + rows < keep))
+        if (mine > 0) not in layouts:
+            layouts[mine > 0] = _Layout.of(signal, start, every, mine > 0, sim)
+        seg, lanes, plans, order, reduce = layouts[mine > 0]
+        length, n_lane = lanes.q_ref.shape[:2]
         record = (np.arange(n_lane)[:, None] * width + np.arange(nk)).ravel()
-        ids = ((offset + rows)[None] * n_lane + np.arange(n_lane)[:, None]).ravel()
         rec = _run(sim, truth_rows(truth, np.tile(rows, n_lane)), lanes.q_ref,
                    np.repeat(lanes.start, width, axis=0), seed, every, progress, width, steps,
-                   length, reduce, record, ids, np.repeat(np.arange(n_lane), width),
-                   timing, lanes.phase)  # fmt: skip
+                   length, reduce, record, np.tile(offset + rows, n_lane),
+                   np.repeat(np.arange(n_lane), width), timing, lanes.phase,
+                   lanes.plan_step)  # fmt: skip
         world_steps += width * n_lane * (length + SETTLE_STEPS)
         t0 = time.perf_counter()
         sums = StreamSums(*rec.reduced)
@@ -246,7 +250,6 @@ def _simulate_parallel(
         moments.append(join_sweeps(per_lane, order))
         timing["simulate_moments"] += time.perf_counter() - t0
         faults.append(_plan_fault(rec.fault_step.reshape(n_lane, width), lanes, seg.first))
-        mine = int(np.count_nonzero(offset + rows < keep))
         if mine:  # the kept worlds' samples of each segment, in plan order
             parts = []
             for k, b in enumerate(lanes.lane):
@@ -260,6 +263,27 @@ def _simulate_parallel(
                 _recording(sim, signal, rec_steps, q[i], dq[i], cur[i]) for i in range(mine)
             ]
     return Simulated(stack_worlds(moments), recordings, np.concatenate(faults), timing, world_steps)
+
+
+class _Layout(NamedTuple):
+    """A plan's sweeps side by side: its segments, lanes, each lane's ``StreamPlan``, the
+    order that puts the lanes' sweeps in plan order, and the sweep-moment ``Reduction``."""
+
+    seg: Segments
+    lanes: Lanes
+    plans: list[StreamPlan]
+    order: np.ndarray
+    reduce: Reduction
+
+    @classmethod
+    def of(cls, signal: PlanSignal, start: np.ndarray, every: int, transfers: bool,
+           sim: MjxSimulator) -> "_Layout":  # fmt: skip
+        seg = plan_segments(signal, start, every, transfers)
+        lanes = pack_segments(seg, every, SETTLE_STEPS)
+        plans = [signal_stream_plan(s, every) for s in lanes.signals]
+        keys = np.concatenate([_sweep_keys(s, every) for s in lanes.signals])
+        reduce = sweep_reduction(plans, sim.n, sim.current_lag)
+        return cls(seg, lanes, plans, np.argsort(keys, kind="stable"), reduce)
 
 
 def _sweep_keys(signal: PlanSignal, every: int) -> np.ndarray:

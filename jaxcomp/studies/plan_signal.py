@@ -74,18 +74,19 @@ def check_every(signal: PlanSignal, every: int) -> None:
 
 
 class Segments(NamedTuple):
-    """A ``PlanSignal`` cut into K segments, one a plan sweep (its passes up and down, then the
-    transfer to the next sweep's start and the settling there; segment 0 also holds the
-    transfer from the plan's start), to be simulated side by side as separate worlds
-    (``plan_recording.simulate(parallel=True)``).
+    """A ``PlanSignal`` cut into K segments, one a plan sweep (its passes up and down, then,
+    unless left out, the transfer to the next sweep's start and the settling there; segment 0
+    also holds the transfer from the plan's start), to be simulated side by side as separate
+    worlds (``plan_recording.simulate(parallel=True)``).
 
     Segment k starts at rest at ``start[k]`` (n,) rad (where segment k - 1 has settled; the
     plan's start pose for k = 0) at plan step ``first[k]``, a multiple of the recording
-    decimation at or up to ``every`` - 1 steps before its sweep's first step ``begin[k]``,
-    and ends at step ``end[k]``. ``q_ref`` (L, K, n) rad: the references side by side, each
-    held at its last pose up to the longest length L; ``signals``: each segment's
-    ``PlanSignal`` (steps first[k] .. end[k]; the steps before begin[k], the end of segment
-    k - 1, are labelled outside sweeps).
+    decimation at or up to ``every`` - 1 steps before its sweep's first step ``begin[k]``;
+    its sweep's last pass ends before step ``sweep_end[k]`` and the segment before step
+    ``end[k]`` (``sweep_end[k]`` without the transfers). ``q_ref`` (L, K, n) rad: the
+    references side by side, each held at its last pose up to the longest length L;
+    ``signals``: each segment's ``PlanSignal`` (steps first[k] .. end[k]; the steps before
+    begin[k], the end of segment k - 1, are labelled outside sweeps).
     """
 
     q_ref: np.ndarray
@@ -94,14 +95,24 @@ class Segments(NamedTuple):
     begin: np.ndarray
     end: np.ndarray
     signals: list[PlanSignal]
+    sweep_end: np.ndarray
 
 
-def plan_segments(signal: PlanSignal, start: np.ndarray, every: int) -> Segments:
-    """``Segments`` of ``signal`` (from the pose ``start`` (n,) rad), aligned to ``every``."""
+def plan_segments(
+    signal: PlanSignal, start: np.ndarray, every: int, transfers: bool = True
+) -> Segments:
+    """``Segments`` of ``signal`` (from the pose ``start`` (n,) rad), aligned to ``every``;
+    ``transfers=False`` ends each segment with its sweep's last pass: the move to the next
+    sweep's start, which a segment run on its own throws away (the next one restarts at
+    rest), is not simulated (the Gen3 Lite's default plan: 177k of 233k steps)."""
     d = signal.direction
     cuts = (np.flatnonzero((d[1:] != 0) & (d[:-1] == 0)) + 1)[1:]  # the sweeps' first steps
     begin = np.r_[0, cuts]
     end = np.r_[cuts, len(signal.sweep)]
+    last = np.flatnonzero(d != 0)
+    sweep_end = last[np.searchsorted(last, end) - 1] + 1  # after each segment's last pass step
+    if not transfers:
+        end = sweep_end
     first = begin - begin % every
     for f, a in zip(first[1:], begin[1:], strict=True):
         if np.ptp(signal.q_ref[f - 1 : a], axis=0).max() > 0:
@@ -122,7 +133,7 @@ def plan_segments(signal: PlanSignal, start: np.ndarray, every: int) -> Segments
                 np.full(b - f, k),
             )
         )
-    return Segments(q_ref, np.array(starts), first, begin, end, signals)
+    return Segments(q_ref, np.array(starts), first, begin, end, signals, sweep_end)
 
 
 class Lanes(NamedTuple):
@@ -132,14 +143,20 @@ class Lanes(NamedTuple):
     Segment k runs in lane ``lane[k]`` from lane step ``at[k]`` (a multiple of the recording
     decimation): the lane's first segment right after the run's settling, each later one after
     a restart at rest at its start pose and ``settle`` steps held there (phase ``SETTLE``,
-    faults not counted). ``q_ref`` (L, B, n) rad and ``phase`` (L, B) (``runner.PLAN``,
-    ``SETTLE``, ``RESTART``): the lanes' references and phases, each held at its last pose up
-    to the longest length L; ``start`` (B, n) rad: each lane's first pose; ``signals``: each
-    lane's ``PlanSignal`` (settling labelled outside sweeps; ``sweep`` the plan sweep).
+    faults not counted). Faults count in a segment's sweep (``runner.PLAN``) only: a transfer
+    to the next sweep that a segment holds is ``SETTLE`` too, so that a world's faults are the
+    same with transfers simulated or not. ``q_ref`` (L, B, n) rad and ``phase`` (L, B)
+    (``runner.PLAN``, ``SETTLE``, ``RESTART``): the lanes' references and phases, each held at
+    its last pose up to the longest length L; ``plan_step`` (L, B): the plan step of each lane
+    step (-1 outside segments), the steps the current noise is drawn at, so that a sample's
+    noise does not depend on its lane; ``start`` (B, n) rad: each lane's first pose;
+    ``signals``: each lane's ``PlanSignal`` (settling labelled outside sweeps; ``sweep`` the
+    plan sweep).
     """
 
     q_ref: np.ndarray
     phase: np.ndarray
+    plan_step: np.ndarray
     start: np.ndarray
     lane: np.ndarray
     at: np.ndarray
@@ -170,6 +187,7 @@ def pack_segments(seg: Segments, every: int, settle: int) -> Lanes:
     L = max(used)
     q_ref = np.empty((L, len(bins), n))
     phase = np.full((L, len(bins)), PLAN, np.int8)
+    plan_step = np.full((L, len(bins)), -1, np.int64)
     lane, at = np.zeros(len(length), int), np.zeros(len(length), int)
     signals = []
     bins = sorted(bins, key=min)  # lane 0 starts the plan
@@ -185,6 +203,8 @@ def pack_segments(seg: Segments, every: int, settle: int) -> Lanes:
                 t += hold
             ref = np.concatenate([s.q_ref, np.repeat(s.q_ref[-1:], length[k] - len(s.q_ref), 0)])
             q_ref[t : t + length[k], b] = ref
+            plan_step[t : t + length[k], b] = seg.first[k] + np.arange(length[k])
+            phase[t + seg.sweep_end[k] - seg.first[k] : t + length[k], b] = SETTLE  # a transfer
             pad = length[k] - len(s.q_ref)
             parts.append(
                 PlanSignal(
@@ -199,7 +219,7 @@ def pack_segments(seg: Segments, every: int, settle: int) -> Lanes:
         q_ref[t:, b] = q_ref[t - 1, b]
         signals.append(PlanSignal(*(np.concatenate(x) for x in zip(*parts, strict=True))))
     start = seg.start[[min(jobs) for jobs in bins]]
-    return Lanes(q_ref, phase, start, lane, at, signals)
+    return Lanes(q_ref, phase, plan_step, start, lane, at, signals)
 
 
 def _outside(steps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
