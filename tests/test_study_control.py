@@ -4,7 +4,7 @@ The MJX closed loop (``MjxSimulator.run_closed_loop`` driven by the study's impe
 is checked against the CPU Simulator driven by ``control.loop.run_control`` in lock step, with
 the same truth and controller: sample by sample, through a push and up to an effort fault.
 Compiled programs (~15-25 s each on a 2-core CPU): the recorded 4-world run of the agreement,
-and the study's own (no recording), once for each of its two CLI runs (slow).
+and the study's own (no recording) for 2 worlds and, chunked, for 1 (slow).
 """
 
 import dataclasses
@@ -29,7 +29,14 @@ from jaxcomp.hardware.mjx import (
     MjxSimulator,
     PushSchedule,
 )
-from jaxcomp.studies.control import draw_worlds, ramped_pushes, reference_rows, trajectory_for
+from jaxcomp.studies import control as sc
+from jaxcomp.studies.control import (
+    ControlSettings,
+    draw_worlds,
+    ramped_pushes,
+    reference_rows,
+    trajectory_for,
+)
 from jaxcomp.studies.control_policy import REFERENCE_COLUMNS, controller_params, impedance_policy
 
 ROBOT = load_robot("gen3_lite")
@@ -97,6 +104,7 @@ def agreement(tmp_path_factory):
     return cpu, rec
 
 
+@pytest.mark.xdist_group("agreement")  # one worker computes the fixture
 def test_closed_loop_agrees_with_the_cpu_control_loop(agreement):
     """Worlds 0 (params off) and 1 (exact, pushed): every sample within
     ``CLOSED_LOOP_AGREEMENT``; the tracking RMS of the policy's metric is run_control's."""
@@ -123,6 +131,7 @@ def test_closed_loop_agrees_with_the_cpu_control_loop(agreement):
     assert cpu[1][0].max_error > 0.01 > 3e-3 > cpu[0][0].max_error
 
 
+@pytest.mark.xdist_group("agreement")  # one worker computes the fixture
 def test_effort_fault_at_the_cpu_step_then_held(agreement):
     """World 2: the CPU arm faults (joint 1 beyond 14 N m) after k cycles; the MJX world at
     sample k, with the effort bit, then holds its position in POSITION mode as the CPU arm
@@ -139,6 +148,7 @@ def test_effort_fault_at_the_cpu_step_then_held(agreement):
     assert (rec.command[2, k:] == rec.command[2, k]).all()  # none sent since
 
 
+@pytest.mark.xdist_group("agreement")  # one worker computes the fixture
 def test_refused_command_holds_from_sample_0(agreement):
     """World 3: NaN params give a NaN command at sample 0: refused, never sent; the world
     stays in POSITION mode as a CPU arm that is never switched, and the policy state is the
@@ -164,6 +174,11 @@ def test_reference_rows_and_pushes():
     np.testing.assert_allclose(pushes.force.sum(axis=1), [[0, 0, 10.0], [10.0, 0, 0]])
     np.testing.assert_allclose(pushes.start[0] + pushes.duration[0], 1.5)
     truth, params, direction = draw_worlds(ROBOT, 50, 0, 0.05, 0.002, False, 0.05)
+    part = draw_worlds(ROBOT, 20, 0, 0.05, 0.002, False, 0.05, first=30)  # worlds 30-49 alone
+    np.testing.assert_array_equal(part[0].ratio, truth.ratio[30:])
+    np.testing.assert_array_equal(part[0].com_offset, truth.com_offset[30:])
+    np.testing.assert_array_equal(part[1]["com"], params["com"][30:])
+    np.testing.assert_array_equal(part[2], direction[30:])
     assert not direction[:, 2].any()  # horizontal by default
     np.testing.assert_allclose(np.linalg.norm(direction, axis=1), 1.0)
     rel = params["ratio"] / truth.ratio - 1
@@ -181,12 +196,27 @@ def _run_cli(tmp_path, name: str, seed: int):
     return json.loads((out / "study.json").read_text()), out, result.output
 
 
+def _same_numbers(a, b, name: str) -> None:
+    """JSON values equal, their floats to 1e-12 relative (a batch of one world and one of two
+    round the closed loop's matrix products differently on the CPU)."""
+    if isinstance(b, dict):
+        assert a.keys() == b.keys(), name
+        for k in b:
+            _same_numbers(a[k], b[k], f"{name}.{k}")
+    elif isinstance(b, str) or (isinstance(b, list) and b and isinstance(b[0], str | bool)):
+        assert a == b, name
+    else:  # numbers, None as NaN
+        fa, fb = np.array(a, dtype=float), np.array(b, dtype=float)
+        np.testing.assert_allclose(fa, fb, rtol=1e-12, atol=1e-20, err_msg=name)
+
+
 @pytest.mark.slow
 def test_study_cli_exact_params_faults_and_reproduces(tmp_path):
-    """2 worlds with exact controller params, seed 3: world 0 is pushed down-forward (z -0.57)
-    and the friction compensation on top overloads joint 1 (effort fault during the push, its
-    figures left out); world 1 tracks the lead-in within 2 mm and yields as F / K_d within
-    10 %. A rerun with the same seed gives the same numbers."""
+    """2 worlds with exact controller params, seed 3: world 0 is pushed down (z -0.85) and the
+    friction compensation on top overloads joint 1 (effort fault during the push, its figures
+    left out); world 1 pushed up tracks the lead-in within 2 mm and yields as F / K_d within
+    10 %. The same seed in chunks of one world, interrupted after the first and resumed, gives
+    the same numbers (a world's draws and noise follow its index), to rounding."""
     first, out, text = _run_cli(tmp_path, "a", 3)
     assert (out / "tracking.png").stat().st_size > 10_000
     assert (out / "compliance.png").stat().st_size > 10_000
@@ -201,9 +231,32 @@ def test_study_cli_exact_params_faults_and_reproduces(tmp_path):
     assert abs(pw["compliance_ratio"][1] - 1) < 0.1, pw["compliance_ratio"]
     assert sm["faulted"] == 1 and sm["tracking_rms_m"]["max"] == pw["tracking_rms_m"][1]
     assert max(pw["ratio_error"]) == 0 and max(pw["gravity_current_error_pooled"]) < 1e-12
-    again, _, _ = _run_cli(tmp_path, "b", 3)
-    assert again["per_world"] == first["per_world"]
-    assert again["summary"] == first["summary"]
+    settings = ControlSettings(2, 3, duration=0.3, params_error=0.0, com_error=0.0,
+                               push="sphere", chunk_worlds=1)  # fmt: skip
+    real, calls = sc.chunk_results, []
+
+    def interrupted(study, rows, progress=False):
+        calls.append(rows.start)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(study, rows, progress)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(sc, "chunk_results", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            sc.study_into(tmp_path / "b", settings, progress=False, robot=ROBOT)
+        assert not (tmp_path / "b" / "study.json").exists()
+        with pytest.raises(InputError, match="--resume continues it"):
+            sc.study_into(tmp_path / "b", settings, progress=False, robot=ROBOT)
+        calls.clear()
+        again = sc.study_into(tmp_path / "b", settings, progress=False, robot=ROBOT, resume=True)
+    assert calls == [1] and again.report["chunk_worlds"] == 1  # the first chunk was kept
+    again = json.loads((tmp_path / "b" / "study.json").read_text())
+    for part in ("per_world", "summary"):
+        assert again[part].keys() == first[part].keys()
+        for k, v in first[part].items():
+            _same_numbers(again[part][k], v, k)
+    assert not (tmp_path / "b" / "chunks").exists()
     # the numbers follow the drawn worlds, and the draws follow the seed
     a, b = (draw_worlds(ROBOT, 2, seed, 0.0, 0.0, False, 0.05, "sphere") for seed in (3, 4))
     assert not np.allclose(a[0].ratio, b[0].ratio) and not np.allclose(a[2], b[2])

@@ -182,6 +182,7 @@ def run(
     seed: int,
     every: int,
     progress: Callable[[int, int], None] | None,
+    world_ids: Sequence[int] | np.ndarray | None = None,
 ) -> ClosedLoopResult:
     """``MjxSimulator.run_closed_loop`` (see there): settle, then the closed loop, chunk by
     chunk."""
@@ -224,7 +225,7 @@ def run(
         push_start=pushes.start.astype(dtype),
         push_duration=pushes.duration.astype(dtype),
         push_force=pushes.force.astype(dtype),
-        key=sim._world_keys(seed, w),
+        key=sim._world_keys(seed, _world_ids(world_ids, w)),
     )
     pad = world_padding(sim.mesh, w)
     wp = len(pad)
@@ -419,3 +420,11 @@ def _signature(*trees: PyTree) -> tuple:
     """Structure, shapes and dtypes of pytrees (a key of compiled functions)."""
     leaves, struct = jax.tree_util.tree_flatten(trees)
     return (str(struct),) + tuple((tuple(a.shape), str(a.dtype)) for a in leaves)
+
+
+def _world_ids(world_ids: Sequence[int] | np.ndarray | None, w: int) -> np.ndarray:
+    """(w,) the worlds' ids of the noise (default 0 .. w - 1), checked."""
+    ids = np.arange(w) if world_ids is None else np.asarray(world_ids)
+    if ids.shape != (w,) or not np.issubdtype(ids.dtype, np.integer) or (ids < 0).any():
+        raise InputError(f"world_ids must be ({w},) ints >= 0")
+    return ids

@@ -4,6 +4,10 @@ The subcommands live in their own modules and register on the ``study`` group de
 the studies themselves are the library ``jaxcomp.studies``.
 """
 
+from collections.abc import Callable
+
+import click
+
 from jaxcomp.cli.group import cli
 
 
@@ -14,3 +18,50 @@ def study() -> None:
     Worlds are sharded over every accelerator present (GPUs of one host; CPU with small
     --worlds). A rerun with the same --seed reproduces the numbers exactly.
     """
+
+
+def scale_options(command: Callable) -> Callable:
+    """The options of a study of any size: its chunks on disk, --resume, and several
+    processes (``jaxcomp.studies.processes``)."""
+    options = [
+        click.option(
+            "--chunk-worlds",
+            type=int,
+            default=None,
+            help="Worlds per chunk: the study runs chunk by chunk, each finished chunk saved in "
+            "DIR/chunks until the report is written. Default: 4096 (the whole study when it has "
+            "fewer).",
+        ),
+        click.option(
+            "--resume",
+            is_flag=True,
+            help="Keep the finished chunks of an interrupted study in DIR and run the others; "
+            "refused when its settings (model, seed, worlds, --chunk-worlds, ...) differ.",
+        ),
+        click.option(
+            "--distributed",
+            is_flag=True,
+            help="One study over several processes (jax.distributed), each running every P-th "
+            "chunk on its own devices into the shared DIR, process 0 writing the report; under "
+            "SLURM (srun) and Open MPI (mpirun) the processes are found, otherwise give the "
+            "three options below.",
+        ),
+        click.option(
+            "--coordinator",
+            default=None,
+            help="HOST:PORT of process 0's coordinator (with --distributed; default: "
+            "$JAX_COORDINATOR_ADDRESS, or SLURM's / Open MPI's).",
+        ),
+        click.option(
+            "--num-processes", type=int, default=None, help="Processes P (--distributed)."
+        ),
+        click.option(
+            "--process-id",
+            type=int,
+            default=None,
+            help="This process's id, 0..P-1 (--distributed).",
+        ),
+    ]
+    for option in reversed(options):
+        command = option(command)
+    return command

@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from jaxcomp.cli.model_options import joint_names, model_options
-from jaxcomp.cli.study import study
+from jaxcomp.cli.study import scale_options, study
 
 
 @study.command("calibration")
@@ -105,20 +105,6 @@ from jaxcomp.cli.study import study
     "the sweep before it ends) or in turn. Default: side by side on an accelerator.",
 )
 @click.option(
-    "--chunk-worlds",
-    type=int,
-    default=None,
-    help="Worlds per chunk: the study runs chunk by chunk (each chunk one plan's worlds), each "
-    "finished chunk saved in DIR/chunks until the report is written. Default: 4096 (the "
-    "whole study when it has fewer).",
-)
-@click.option(
-    "--resume",
-    is_flag=True,
-    help="Keep the finished chunks of an interrupted study in DIR and run the others; refused "
-    "when its settings (model, seed, plan, worlds, spread, --every, --chunk-worlds, ...) differ.",
-)
-@click.option(
     "--keep-samples",
     type=int,
     default=0,
@@ -126,23 +112,7 @@ from jaxcomp.cli.study import study
     help="Save the recorded samples of the first N worlds as recordings, "
     "DIR/samples/world_00000.npz, ... (for plots; jaxcomp fit reads them).",
 )
-@click.option(
-    "--distributed",
-    is_flag=True,
-    help="One study over several processes (jax.distributed), each running every P-th chunk "
-    "on its own devices into the shared DIR, process 0 writing the report; under SLURM (srun) "
-    "and Open MPI (mpirun) the processes are found, otherwise give the three options below.",
-)
-@click.option(
-    "--coordinator",
-    default=None,
-    help="HOST:PORT of process 0's coordinator (with --distributed; default: "
-    "$JAX_COORDINATOR_ADDRESS, or SLURM's / Open MPI's).",
-)
-@click.option("--num-processes", type=int, default=None, help="Processes P (--distributed).")
-@click.option(
-    "--process-id", type=int, default=None, help="This process's id, 0..P-1 (--distributed)."
-)
+@scale_options
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def calibration(
     model: str,

@@ -10,7 +10,7 @@ from pathlib import Path
 import click
 
 from jaxcomp.cli.model_options import joint_names, model_options
-from jaxcomp.cli.study import study
+from jaxcomp.cli.study import scale_options, study
 
 
 @study.command("control")
@@ -68,6 +68,8 @@ from jaxcomp.cli.study import study
     "10 N at the home pose overloads joint 1 with the friction compensation).",
 )
 @click.option("--devices", type=int, default=None, help="Shard over N devices (default all).")
+@scale_options
+@click.option("--progress/--no-progress", default=True, show_default=True)
 def control(
     model: str,
     joints: str | None,
@@ -85,6 +87,13 @@ def control(
     noise: float,
     push: str,
     devices: int | None,
+    chunk_worlds: int | None,
+    resume: bool,
+    distributed: bool,
+    coordinator: str | None,
+    num_processes: int | None,
+    process_id: int | None,
+    progress: bool,
 ) -> None:
     """Tracking error and compliance across randomized model errors (MJX, one world each).
 
@@ -94,7 +103,13 @@ def control(
     in a random (by default horizontal) direction measures the compliance ratio
     displacement / (F / K_d); then the paper's half circle (r 0.315 m, 0.101 m/s) measures
     the tracking error. Writes DIR/study.json and DIR/tracking.png, DIR/compliance.png.
+    Nothing is written on error but the finished chunks (DIR/chunks), which --resume keeps.
+    The same --seed reproduces the numbers (timings aside; other --chunk-worlds to rounding)
+    whatever the processes: each world's draws and noise follow its index.
     """
+    from jaxcomp.studies.processes import start_processes
+
+    processes = start_processes(distributed, coordinator, num_processes, process_id)
     from jaxcomp.studies.control import ControlSettings, study_into, summary
 
     settings = ControlSettings(
@@ -110,9 +125,16 @@ def control(
         noise=noise,
         push=push,
         devices=devices,
+        chunk_worlds=chunk_worlds,
     )
     from jaxcomp.robot import load_robot
 
     robot = load_robot(model, joints=joint_names(joints), site=site)
-    result = study_into(Path(out_dir), settings, robot=robot)
+    result = study_into(
+        Path(out_dir), settings, progress=progress, robot=robot, resume=resume,
+        processes=processes,
+    )  # fmt: skip
+    if result is None:
+        click.echo(f"process {processes.index}: its chunks are done; process 0 writes the report")
+        return
     click.echo(summary(result.report, result.paths[0]))

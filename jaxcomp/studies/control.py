@@ -26,6 +26,7 @@ gravity-current error pooled over all joints (``gravity_current_error_pooled``).
 N, A, rad); positions in the world (= arm base) frame.
 """
 
+import contextlib
 import dataclasses
 import math
 import platform
@@ -58,7 +59,9 @@ from jaxcomp.studies.control_policy import (
     controller_params,
     impedance_policy,
 )
+from jaxcomp.studies.processes import ONE_PROCESS, Processes, together
 from jaxcomp.studies.setup import MODEL, simulator
+from jaxcomp.studies.study_chunks import CHUNKS_DIR, ChunkStore, study_chunks
 
 # the timeline, s from the start of the closed loop
 BASELINE = (0.3, 0.5)  # static offset window
@@ -113,8 +116,11 @@ def draw_worlds(
     nominal: bool,
     noise: float,
     push: str = "horizontal",
+    first: int = 0,
 ) -> tuple[BatchTruth, dict[str, np.ndarray], np.ndarray]:
-    """(truth, controller params, push directions (W, 3)) drawn from ``seed``.
+    """(truth, controller params, push directions (W, 3)) of the worlds ``first`` ..
+    ``first`` + W - 1, each drawn from its own generator ``default_rng((seed, id))``: a world's
+    draws do not depend on how many worlds are drawn with it (chunks, processes).
 
     Truth per world: the model's ratios and friction losses (``truth_centre``; the Gen3 Lite:
     the paper's) x U(0.9, 1.1) and x U(0.8, 1.2), COM
@@ -125,24 +131,27 @@ def draw_worlds(
     uniform in the world's xy plane, or "sphere", uniform on the unit sphere (a 10 N push
     down at ``home`` plus the friction compensation asks joint 1 for more than its 14 N m).
     """
-    rng = np.random.default_rng(seed)
+    if push not in ("horizontal", "sphere"):
+        raise InputError(f"push direction must be 'horizontal' or 'sphere', got {push!r}")
     n, nb = len(arm_joint_indices(robot)), len(robot.link_names)
     moved = robot.tree.moves.any(axis=0)[None, :, None]
     ratio_c, friction_c = truth_centre(robot)
-    ratio = ratio_c * rng.uniform(0.9, 1.1, (worlds, n))
-    friction = friction_c * rng.uniform(0.8, 1.2, (worlds, n))
-    com = rng.uniform(-DEFAULT_COM_OFFSET, DEFAULT_COM_OFFSET, (worlds, nb, 3)) * moved
+    draws = [_world_draws(np.random.default_rng((seed, w)), n, nb)
+             for w in range(first, first + worlds)]  # fmt: skip
+    u_ratio, u_friction, u_com, u_err, u_com_err, angle, normal = (
+        np.stack(a) for a in zip(*draws, strict=True)
+    )
+    ratio = ratio_c * (0.9 + 0.2 * u_ratio)
+    friction = friction_c * (0.8 + 0.4 * u_friction)
+    com = DEFAULT_COM_OFFSET * (2 * u_com - 1) * moved
     truth = BatchTruth.from_arrays(robot, ratio, friction, com_offset=com, current_noise=noise)
-    err = rng.uniform(-1.0, 1.0, (2, worlds, n)) * params_error
-    com_err = rng.uniform(-1.0, 1.0, (worlds, nb, 3)) * com_error * moved
+    err = np.moveaxis(2 * u_err - 1, 1, 0) * params_error
+    com_err = (2 * u_com_err - 1) * com_error * moved
     if push == "horizontal":
-        angle = rng.uniform(0.0, 2 * np.pi, worlds)
+        angle = 2 * np.pi * angle
         direction = np.stack([np.cos(angle), np.sin(angle), np.zeros(worlds)], axis=1)
-    elif push == "sphere":
-        direction = rng.normal(size=(worlds, 3))
-        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     else:
-        raise InputError(f"push direction must be 'horizontal' or 'sphere', got {push!r}")
+        direction = normal / np.linalg.norm(normal, axis=1, keepdims=True)
     if nominal:
         nom = RobotParams.nominal(robot)
         params = controller_params(
@@ -155,6 +164,14 @@ def draw_worlds(
     return truth, params, direction
 
 
+def _world_draws(rng: np.random.Generator, n: int, nb: int) -> tuple[np.ndarray, ...]:
+    """One world's uniform [0, 1) draws (ratio (n,), friction (n,), COM (nb, 3), controller
+    errors (2, n), controller COM errors (nb, 3), push angle ()) and its normal (3,) push
+    direction, in this order whatever the push kind."""
+    u = lambda *shape: rng.uniform(0.0, 1.0, shape)  # noqa: E731
+    return u(n), u(n), u(nb, 3), u(2, n), u(nb, 3), u(), rng.normal(size=3)
+
+
 def model_errors(
     robot: Robot, truth: BatchTruth, params: dict[str, np.ndarray]
 ) -> dict[str, np.ndarray]:
@@ -162,7 +179,8 @@ def model_errors(
     the relative ratio and friction errors, RMS COM error over the moving links' axes (m), and
     the pooled relative gravity-current error: RMS of r_c g_c(q) - r_t g_t(q) over ``POSES``
     random poses and all joints together, relative to the RMS of r_t g_t(q)
-    (``evaluate.gravity_current_error_batch(pooled=True)``)."""
+    (``evaluate.gravity_current_error_batch(pooled=True)``, in batches of one shape, so that
+    a world's number does not depend on the others)."""
     nominal_com = np.asarray(robot.nominal_params().com)
     moved = robot.tree.moves.any(axis=0)
     true_com = nominal_com[None] + truth.com_offset
@@ -180,6 +198,7 @@ def model_errors(
             params["com"] - nominal_com[None],
             poses,
             pooled=True,
+            fixed=True,  # batches of one shape: a world's error whatever the chunk
         ),
     }
 
@@ -226,7 +245,8 @@ class ControlSettings:
             moving link. nominal: the controller has the model's nominal ratios, no friction
             compensation and nominal COM instead (``draw_worlds``).
         noise: A, current noise. push: push directions, "horizontal" or "sphere".
-        devices: shard over the first N devices (None: all).
+        devices: shard over the first N devices (None: all). chunk_worlds: worlds per
+            closed-loop run (``study_chunks``; None: ``CHUNK_WORLDS``).
     """
 
     worlds: int = 64
@@ -241,18 +261,40 @@ class ControlSettings:
     noise: float = 0.05
     push: str = "horizontal"
     devices: int | None = None
+    chunk_worlds: int | None = None
 
 
-def run_study(
-    settings: ControlSettings, *, progress: bool = True, robot: Robot | None = None
-) -> dict:
-    """The study's numbers as a JSON-able dict (see the module doc); ``progress``: show a
-    progress bar; ``robot``: the ``MODEL`` robot, whose simulator and policy it keeps
-    (default: freshly loaded)."""
-    t_begin = time.perf_counter()
-    force, duration, nominal = settings.force, settings.duration, settings.nominal
-    params_error, com_error, noise = settings.params_error, settings.com_error, settings.noise
-    seed, push = settings.seed, settings.push
+#: Worlds per closed-loop run by default: an H100 runs 4096 worlds of the study at full speed.
+CHUNK_WORLDS = 4096
+#: The per-world arrays of a chunk (``chunk_results``; ``fault_code``: ``FAULT_*`` bits).
+WORLD_ARRAYS = ("tracking_rms_m", "tracking_max_m", "compliance_ratio", "static_offset_xyz_m",
+                "push_direction", "faulted", "fault_time_s", "fault_code", "ratio_error",
+                "friction_error", "com_error_m", "gravity_current_error_pooled")  # fmt: skip
+
+
+class _Study(NamedTuple):
+    """A control study set up: its checked settings and what every chunk shares."""
+
+    settings: ControlSettings
+    robot: Robot
+    gains: ImpedanceGains
+    duration: float
+    steps: int
+    trajectory: Trajectory
+    reference: np.ndarray
+    policy: object
+    sim: object
+
+    def run_settings(self) -> dict:
+        """The settings its chunk files belong to (``ChunkStore``)."""
+        kept = dataclasses.asdict(self.settings) | {"gains": dataclasses.asdict(self.gains)}
+        kept.pop("devices")
+        return json_ready(kept | {"model": self.robot.name, "digest": self.robot.digest})
+
+
+def _setup(settings: ControlSettings, robot: Robot | None) -> _Study:
+    """``settings`` checked (InputError) and the study's shared parts made."""
+    force, duration = settings.force, settings.duration
     worlds, passes = int(settings.worlds), int(settings.passes)
     if worlds < 1:
         raise InputError(f"--worlds must be >= 1, got {worlds}")
@@ -260,13 +302,17 @@ def run_study(
         raise InputError(f"--passes must be >= 1, got {passes}")
     if not (math.isfinite(force) and force > 0):
         raise InputError(f"--force must be > 0 N, got {force}")
-    for name, value in (("params-error", params_error), ("com-error", com_error), ("noise", noise)):
+    for name in ("params_error", "com_error", "noise"):
+        value = getattr(settings, name)
         if not (math.isfinite(value) and value >= 0):
-            raise InputError(f"--{name} must be >= 0, got {value}")
-    if params_error >= 1:
-        raise InputError(f"--params-error must be < 1 (relative), got {params_error}")
-    preset = settings.gains if isinstance(settings.gains, str) else None
+            raise InputError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
+    if settings.params_error >= 1:
+        raise InputError(f"--params-error must be < 1 (relative), got {settings.params_error}")
+    chunk = CHUNK_WORLDS if settings.chunk_worlds is None else settings.chunk_worlds
+    study_chunks([range(worlds)], chunk)  # --chunk-worlds checked
+    settings = dataclasses.replace(settings, chunk_worlds=chunk)
     robot = load_robot(MODEL) if robot is None else robot
+    preset = settings.gains if isinstance(settings.gains, str) else None
     gains = settings.gains if preset is None else impedance_gains(robot, preset)
     start, trajectory = trajectory_for(robot, passes)
     if duration is None:
@@ -274,35 +320,34 @@ def run_study(
     if not (math.isfinite(duration) and duration > 0):
         raise InputError(f"--duration must be > 0 s, got {duration}")
     steps = int(round((TRACK_START + duration) / CONTROL_PERIOD))
-    end = TRACK_START + duration
-    windows = {"track": (TRACK_START, end + 1.0), "base": BASELINE, "push": HELD}
+    windows = {"track": (TRACK_START, TRACK_START + duration + 1.0), "base": BASELINE,
+               "push": HELD}  # fmt: skip
     reference = reference_rows(trajectory, start, steps, windows)
-    truth, params, direction = draw_worlds(
-        robot, worlds, seed, params_error, com_error, nominal, noise, push
-    )
-    stiffness = np.asarray(gains.stiffness, float)
-    expected = force * (direction**2 / stiffness).sum(axis=1)  # m along u: F u^T K^-1 u
     policy = impedance_policy(robot, gains)
     sim = simulator(settings.devices, robot)
+    return _Study(settings, robot, gains, duration, steps, trajectory, reference, policy, sim)
+
+
+def chunk_results(study: _Study, rows: range, progress: bool = False) -> dict:
+    """The worlds ``rows`` (global ids) in one closed-loop run: {"world": ``WORLD_ARRAYS``,
+    "timing": s}. A world's numbers depend on its id alone (its draws and noise)."""
+    st, sim = study.settings, study.sim
+    truth, params, direction = draw_worlds(
+        study.robot, len(rows), st.seed, st.params_error, st.com_error, st.nominal, st.noise,
+        st.push, first=rows.start,
+    )  # fmt: skip
+    stiffness = np.asarray(study.gains.stiffness, float)
+    expected = st.force * (direction**2 / stiffness).sum(axis=1)  # m along u: F u^T K^-1 u
     compiled_before = sim.compile_seconds
-    bar = tqdm(total=steps, unit="step", desc=f"{worlds} worlds", disable=not progress)
-
-    def advance(done: int, total: int) -> None:
-        bar.update(done - bar.n)
-
+    desc = f"worlds {rows.start}-{rows.stop - 1}"
+    bar = tqdm(total=study.steps, unit="step", desc=desc, disable=not progress, leave=False)
     try:
         result = sim.run_closed_loop(
-            truth,
-            policy,
-            params,
-            None,
-            steps,
-            reference=reference,
-            pushes=ramped_pushes(direction, force),
-            initial_pose="home",
-            seed=seed,
-            progress=advance,
-        )
+            truth, study.policy, params, None, study.steps, reference=study.reference,
+            pushes=ramped_pushes(direction, st.force), initial_pose="home", seed=st.seed,
+            progress=lambda done, _total: bar.update(done - bar.n),
+            world_ids=np.arange(rows.start, rows.stop),
+        )  # fmt: skip
     finally:
         bar.close()
     s = result.state
@@ -316,66 +361,142 @@ def run_study(
         moved = s["push_sum"] / s["push_n"][:, None] - offset
         ratio = (moved * direction).sum(axis=1) / expected
     measured = fault_t >= HELD[1]
-    ratio, offset = np.where(measured, ratio, np.nan), np.where(measured[:, None], offset, np.nan)
-    errors = model_errors(robot, truth, params)
-    ok = ~faulted
-    timing = dict(sim.last_timing, compile=sim.compile_seconds - compiled_before)
-    run_s = timing["settle"] + timing["plan"]
+    world = {
+        "tracking_rms_m": rms,
+        "tracking_max_m": track_max,
+        "compliance_ratio": np.where(measured, ratio, np.nan),
+        "static_offset_xyz_m": np.where(measured[:, None], offset, np.nan),
+        "push_direction": direction,
+        "faulted": faulted,
+        "fault_time_s": np.where(faulted, fault_t, np.nan),
+        "fault_code": np.asarray(result.fault_code),
+        **model_errors(study.robot, truth, params),
+    }
+    timing = sim.last_timing
+    return {"world": {k: np.asarray(world[k]) for k in WORLD_ARRAYS}, "timing": {
+        "prepare": timing["prepare"], "compile": sim.compile_seconds - compiled_before,
+        "run": timing["settle"] + timing["plan"]}}  # fmt: skip
+
+
+def run_study(
+    settings: ControlSettings,
+    *,
+    progress: bool = True,
+    robot: Robot | None = None,
+    folder: Path | None = None,
+    resume: bool = False,
+    processes: Processes = ONE_PROCESS,
+) -> dict | None:
+    """The study's numbers as a JSON-able dict (see the module doc); ``progress``: show
+    progress bars; ``robot``: the ``MODEL`` robot, whose simulator and policy it keeps
+    (default: freshly loaded).
+
+    The worlds run in chunks of ``chunk_worlds`` (``chunk_results``) and the report is made
+    from their joined per-world arrays, whatever the chunking. With a ``folder`` (the output
+    folder, created and locked by the caller) each finished chunk is written to
+    ``folder``/chunks and ``resume`` keeps those of an interrupted run of the same settings;
+    with several ``processes`` each runs its own chunks into ``folder`` and process 0 alone
+    returns the report (the others None), as ``studies.calibration.run_study``.
+    """
+    t_begin = time.perf_counter()
+    if folder is None and (processes.count > 1 or resume):
+        raise InputError("--resume and --distributed need an output folder")
+    study = together(processes, lambda: _setup(settings, robot), "to set the study up")
+    chunks = study_chunks([range(int(settings.worlds))], study.settings.chunk_worlds)
+    store = None if folder is None else ChunkStore(Path(folder) / CHUNKS_DIR)
+    lead = processes.index == 0
+    if store is not None:
+        together(processes, lambda: lead and store.prepare(study.run_settings(), resume),
+                 "to prepare the output folder")  # fmt: skip
+    mine, kept = processes.mine(chunks), {}
+
+    def run_mine() -> None:
+        bar = tqdm(total=sum(len(c.rows) for c in mine), unit="world",
+                   desc=f"{settings.worlds} worlds", disable=not progress)  # fmt: skip
+        for chunk in mine:
+            if store is None or not store.done(chunk):
+                parts = chunk_results(study, chunk.rows, progress)
+                if store is None:
+                    kept[chunk.index] = parts
+                else:
+                    store.write(chunk, parts)
+            bar.update(len(chunk.rows))
+        bar.close()
+
+    together(processes, run_mine, "to run its chunks")
+    if not lead:
+        return None
+    parts = [kept[c.index] if store is None else store.read(c) for c in chunks]
+    world = {k: np.concatenate([p["world"][k] for p in parts]) for k in WORLD_ARRAYS}
+    timing = {k: float(sum(np.sum(p["timing"][k]) for p in parts))
+              for k in ("prepare", "compile", "run")}  # fmt: skip
+    return _report(study, world, timing, time.perf_counter() - t_begin, processes.count)
+
+
+def _report(study: _Study, world: dict, timing: dict, total: float, processes: int) -> dict:
+    """The report of a study from its joined per-world arrays ``world`` (``WORLD_ARRAYS``)."""
+    st, sim = study.settings, study.sim
+    preset = st.gains if isinstance(st.gains, str) else None
+    faulted = world["faulted"]
+    ok, measured = ~faulted, np.isfinite(world["compliance_ratio"])
+    static = np.linalg.norm(world["static_offset_xyz_m"], axis=1)
+    steps, run_s = study.steps, timing["run"]
     report = {
         "study": "control",
-        "seed": int(seed),
-        "worlds": worlds,
+        "seed": int(st.seed),
+        "worlds": int(st.worlds),
         "backend": jax.default_backend(),
         "devices": [str(d.device_kind) for d in (sim.mesh.devices.flat if sim.mesh else [])],
         "host": platform.node(),
+        "processes": processes,
+        "chunk_worlds": st.chunk_worlds,
         "config": {
             "model": MODEL,
-            "gains": json_ready(dataclasses.asdict(gains)),
-            "force_N": force,
-            "push_direction": push,
-            "tracking_duration_s": duration,
-            "trajectory": trajectory.description,
-            "passes": passes,
+            "gains": json_ready(dataclasses.asdict(study.gains)),
+            "force_N": st.force,
+            "push_direction": st.push,
+            "tracking_duration_s": study.duration,
+            "trajectory": study.trajectory.description,
+            "passes": int(st.passes),
             "steps": steps,
-            "controller": "nominal" if nominal else "identified-like",
-            "params_error": params_error,
-            "com_error_m": com_error,
-            "current_noise_A": noise,
+            "controller": "nominal" if st.nominal else "identified-like",
+            "params_error": st.params_error,
+            "com_error_m": st.com_error,
+            "current_noise_A": st.noise,
             "truth": "paper ratio x U(0.9, 1.1), friction x U(0.8, 1.2), COM U(+-4 mm)",
             "timeline_s": {
                 "baseline": BASELINE,
                 "push": [PUSH_START, RELEASE],
                 "held": HELD,
-                "tracking": [TRACK_START, end],
+                "tracking": [TRACK_START, TRACK_START + study.duration],
             },
         },
         "summary": {
-            "tracking_rms_m": _stats(rms[ok]),
-            "tracking_max_m": _stats(track_max[ok]),
-            "compliance_ratio": _stats(ratio[measured], (5, 50, 95)),
-            "static_offset_m": _stats(np.linalg.norm(offset[measured], axis=1)),
+            "tracking_rms_m": _stats(world["tracking_rms_m"][ok]),
+            "tracking_max_m": _stats(world["tracking_max_m"][ok]),
+            "compliance_ratio": _stats(world["compliance_ratio"][measured], (5, 50, 95)),
+            "static_offset_m": _stats(static[measured]),
             "faulted": int(faulted.sum()),
             "faulted_fraction": float(faulted.mean()),
             "note": "over the worlds that did not fault before the phase ended",
         },
         "per_world": {
-            "tracking_rms_m": rms.tolist(),
-            "tracking_max_m": track_max.tolist(),
-            "compliance_ratio": ratio.tolist(),
-            "static_offset_m": np.linalg.norm(offset, axis=1).tolist(),
-            "static_offset_xyz_m": offset.tolist(),
-            "push_direction": direction.tolist(),
+            **{
+                k: world[k].tolist()
+                for k in ("tracking_rms_m", "tracking_max_m", "compliance_ratio")
+            },  # fmt: skip
+            "static_offset_m": static.tolist(),
+            "static_offset_xyz_m": world["static_offset_xyz_m"].tolist(),
+            "push_direction": world["push_direction"].tolist(),
             "faulted": faulted.tolist(),
-            "fault_time_s": np.where(faulted, fault_t, np.nan).tolist(),
-            "fault": [", ".join(fault_names(c)) for c in result.fault_code],
-            **{k: v.tolist() for k, v in errors.items()},
+            "fault_time_s": world["fault_time_s"].tolist(),
+            "fault": [", ".join(fault_names(c)) for c in world["fault_code"]],
+            **{k: world[k].tolist() for k in WORLD_ARRAYS[-4:]},
         },
         "timing_s": {
-            "prepare": timing["prepare"],
-            "compile": timing["compile"],
-            "run": run_s,
-            "total": time.perf_counter() - t_begin,
-            "world_steps_per_s": worlds * (steps + SETTLE_STEPS) / run_s if run_s > 0 else None,
+            **timing,
+            "total": total,
+            "world_steps_per_s": st.worlds * (steps + SETTLE_STEPS) / run_s if run_s > 0 else None,
         },
     }
     if preset is not None:
@@ -421,12 +542,30 @@ class StudyOutputs(NamedTuple):
 
 
 def study_into(
-    out: Path, settings: ControlSettings, *, progress: bool = True, robot: Robot | None = None
-) -> StudyOutputs:
+    out: Path,
+    settings: ControlSettings,
+    *,
+    progress: bool = True,
+    robot: Robot | None = None,
+    resume: bool = False,
+    processes: Processes = ONE_PROCESS,
+) -> StudyOutputs | None:
     """``run_study`` written into the folder ``out``, created and locked first
     (``files.output_folder``: FileError before minutes of simulation): study.json, then the
-    figures (``control_figures.write_figures``)."""
-    with output_folder(out) as folder:
-        report = run_study(settings, progress=progress, robot=robot)
+    figures (``control_figures.write_figures``); the finished chunks stay in ``out``/chunks
+    until then (``resume``). With several ``processes``, process 0 holds the folder and writes
+    the report; the others write their chunks into it and return None."""
+    if processes.index != 0:
+        together(processes, lambda: None, "to open the output folder")
+        run_study(settings, progress=False, robot=robot, folder=Path(out), resume=resume,
+                  processes=processes)  # fmt: skip
+        return None
+    with contextlib.ExitStack() as stack:
+        folder = together(processes, lambda: stack.enter_context(output_folder(out)),
+                          "to open the output folder")  # fmt: skip
+        report = run_study(settings, progress=progress, robot=robot, folder=folder,
+                           resume=resume, processes=processes)  # fmt: skip
         path = write_report(report, folder)
-        return StudyOutputs(report, [path, *write_figures(report, folder)])
+        paths = [path, *write_figures(report, folder)]
+        ChunkStore(folder / CHUNKS_DIR).remove()
+        return StudyOutputs(report, paths)
