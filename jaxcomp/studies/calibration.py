@@ -40,7 +40,6 @@ Units: SI (rad, A, N m, m, s); COM offsets in each link's own frame; ratio A/(N 
 friction of the truth N m s/rad, the fit's viscous term A s/rad (= ratio x viscous).
 """
 
-import contextlib
 import dataclasses
 import math
 import os
@@ -56,7 +55,7 @@ from tqdm.auto import tqdm
 
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
-from jaxcomp.files import output_folder, writing
+from jaxcomp.files import writing
 from jaxcomp.hardware.mjx import MjxSimulator
 from jaxcomp.hardware.truth import model_current_noise
 from jaxcomp.identify.evaluate import random_poses
@@ -91,7 +90,14 @@ from jaxcomp.studies.plan_signal import (
 )
 from jaxcomp.studies.processes import ONE_PROCESS, Processes, together
 from jaxcomp.studies.setup import MODEL, simulator
-from jaxcomp.studies.study_chunks import CHUNKS_DIR, Chunk, ChunkStore, study_chunks
+from jaxcomp.studies.study_chunks import (
+    CHUNKS_DIR,
+    Chunk,
+    ChunkStore,
+    into_folder,
+    run_chunks,
+    study_chunks,
+)
 from jaxcomp.studies.truth_draw import TruthSpread, draw_truth
 
 __all__ = [  # the study, and the stages it composes
@@ -485,36 +491,19 @@ def run_study(
     study = together(processes, lambda: _setup(settings, robot), "to set the study up")
     chunks = study_chunks([gr.rows for gr in study.groups], study.chunk_worlds)
     store = None if folder is None else ChunkStore(Path(folder) / CHUNKS_DIR)
-    lead = processes.index == 0
-    if store is not None:
-        together(processes, lambda: lead and store.prepare(study.run_settings(), resume),
-                 "to prepare the output folder")  # fmt: skip
     setup_s = time.perf_counter() - t_all
-    mine = processes.mine(chunks)
-    kept: dict[int, dict] = {}
 
-    def run_mine() -> None:
-        bar = tqdm(total=sum(len(c.rows) for c in mine), unit="world",
-                   desc=f"{settings.worlds} worlds", disable=not progress)  # fmt: skip
-        for chunk in mine:
-            if store is not None and store.done(chunk):
-                bar.update(len(chunk.rows))
-                continue
-            parts, recordings = chunk_results(study, chunk, progress)
-            for w, rec in recordings.items():
-                rec.save(Path(folder) / SAMPLES_DIR / f"world_{w:05d}.npz")
-            if store is None:
-                kept[chunk.index] = parts
-            else:
-                store.write(chunk, parts)
-            bar.update(len(chunk.rows))
-        bar.close()
+    def compute(chunk: Chunk) -> dict:
+        parts, recordings = chunk_results(study, chunk, progress)
+        for w, rec in recordings.items():
+            rec.save(Path(folder) / SAMPLES_DIR / f"world_{w:05d}.npz")
+        return parts
 
-    together(processes, run_mine, "to run its chunks")
-    if not lead:
+    parts = run_chunks(processes, chunks, store, compute, settings=study.run_settings(),
+                       resume=resume, progress=progress)  # fmt: skip
+    if parts is None:
         return None
     t0 = time.perf_counter()
-    parts = [kept[c.index] if store is None else store.read(c) for c in chunks]
     arrays, timing = concat_chunks(parts, *jax_parameters(study.model))
     world_steps = timing.pop("world_steps")
     timing = {"setup": setup_s} | timing | {"report": time.perf_counter() - t0}
@@ -597,19 +586,17 @@ def study_into(
     written but the finished chunks (``run_study``: ``resume`` keeps them), and a folder it
     created and left empty is removed. With several ``processes``, process 0 holds the folder
     and writes the report; the others write their chunks into it and return None."""
-    if processes.index != 0:
-        together(processes, lambda: None, "to open the output folder")
-        run_study(settings, progress=False, robot=robot, folder=Path(out), resume=resume,
-                  processes=processes)  # fmt: skip
-        return None
-    with contextlib.ExitStack() as stack:
-        folder = together(processes, lambda: stack.enter_context(output_folder(out)),
-                          "to open the output folder")  # fmt: skip
-        report, arrays = run_study(settings, progress=progress, robot=robot, folder=folder,
-                                   resume=resume, processes=processes)  # fmt: skip
-        paths = write_outputs(folder, report, arrays)
-        ChunkStore(folder / CHUNKS_DIR).remove()
-        return StudyOutputs(report, arrays, paths)
+
+    def run(folder: Path) -> tuple[dict, dict] | None:
+        shown = progress and processes.index == 0
+        return run_study(settings, progress=shown, robot=robot, folder=folder, resume=resume,
+                         processes=processes)  # fmt: skip
+
+    def write(folder: Path, result: tuple[dict, dict]) -> StudyOutputs:
+        report, arrays = result
+        return StudyOutputs(report, arrays, write_outputs(folder, report, arrays))
+
+    return into_folder(out, processes, run, write)
 
 
 def summary(report: dict) -> str:

@@ -26,7 +26,6 @@ gravity-current error pooled over all joints (``gravity_current_error_pooled``).
 N, A, rad); positions in the world (= arm base) frame.
 """
 
-import contextlib
 import dataclasses
 import math
 import platform
@@ -42,7 +41,7 @@ from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.control import ImpedanceGains, impedance_gains
 from jaxcomp.control.trajectory import Trajectory, parse_trajectory
 from jaxcomp.errors import InputError
-from jaxcomp.files import output_folder, writing
+from jaxcomp.files import writing
 from jaxcomp.hardware.mjx import (
     SETTLE_STEPS,
     BatchTruth,
@@ -61,7 +60,13 @@ from jaxcomp.studies.control_policy import (
 )
 from jaxcomp.studies.processes import ONE_PROCESS, Processes, together
 from jaxcomp.studies.setup import MODEL, simulator
-from jaxcomp.studies.study_chunks import CHUNKS_DIR, ChunkStore, study_chunks
+from jaxcomp.studies.study_chunks import (
+    CHUNKS_DIR,
+    ChunkStore,
+    into_folder,
+    run_chunks,
+    study_chunks,
+)
 
 # the timeline, s from the start of the closed loop
 BASELINE = (0.3, 0.5)  # static offset window
@@ -404,29 +409,12 @@ def run_study(
     study = together(processes, lambda: _setup(settings, robot), "to set the study up")
     chunks = study_chunks([range(int(settings.worlds))], study.settings.chunk_worlds)
     store = None if folder is None else ChunkStore(Path(folder) / CHUNKS_DIR)
-    lead = processes.index == 0
-    if store is not None:
-        together(processes, lambda: lead and store.prepare(study.run_settings(), resume),
-                 "to prepare the output folder")  # fmt: skip
-    mine, kept = processes.mine(chunks), {}
-
-    def run_mine() -> None:
-        bar = tqdm(total=sum(len(c.rows) for c in mine), unit="world",
-                   desc=f"{settings.worlds} worlds", disable=not progress)  # fmt: skip
-        for chunk in mine:
-            if store is None or not store.done(chunk):
-                parts = chunk_results(study, chunk.rows, progress)
-                if store is None:
-                    kept[chunk.index] = parts
-                else:
-                    store.write(chunk, parts)
-            bar.update(len(chunk.rows))
-        bar.close()
-
-    together(processes, run_mine, "to run its chunks")
-    if not lead:
+    parts = run_chunks(
+        processes, chunks, store, lambda chunk: chunk_results(study, chunk.rows, progress),
+        settings=study.run_settings(), resume=resume, progress=progress,
+    )  # fmt: skip
+    if parts is None:
         return None
-    parts = [kept[c.index] if store is None else store.read(c) for c in chunks]
     world = {k: np.concatenate([p["world"][k] for p in parts]) for k in WORLD_ARRAYS}
     timing = {k: float(sum(np.sum(p["timing"][k]) for p in parts))
               for k in ("prepare", "compile", "run")}  # fmt: skip
@@ -555,17 +543,13 @@ def study_into(
     figures (``control_figures.write_figures``); the finished chunks stay in ``out``/chunks
     until then (``resume``). With several ``processes``, process 0 holds the folder and writes
     the report; the others write their chunks into it and return None."""
-    if processes.index != 0:
-        together(processes, lambda: None, "to open the output folder")
-        run_study(settings, progress=False, robot=robot, folder=Path(out), resume=resume,
-                  processes=processes)  # fmt: skip
-        return None
-    with contextlib.ExitStack() as stack:
-        folder = together(processes, lambda: stack.enter_context(output_folder(out)),
-                          "to open the output folder")  # fmt: skip
-        report = run_study(settings, progress=progress, robot=robot, folder=folder,
-                           resume=resume, processes=processes)  # fmt: skip
-        path = write_report(report, folder)
-        paths = [path, *write_figures(report, folder)]
-        ChunkStore(folder / CHUNKS_DIR).remove()
-        return StudyOutputs(report, paths)
+
+    def run(folder: Path) -> dict | None:
+        shown = progress and processes.index == 0
+        return run_study(settings, progress=shown, robot=robot, folder=folder, resume=resume,
+                         processes=processes)  # fmt: skip
+
+    def write(folder: Path, report: dict) -> StudyOutputs:
+        return StudyOutputs(report, [write_report(report, folder), *write_figures(report, folder)])
+
+    return into_folder(out, processes, run, write)

@@ -15,18 +15,21 @@ A chunk file holds flat arrays: ``<part>.<name>`` for the parts of ``ChunkStore.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from jaxcomp.errors import InputError
-from jaxcomp.files import atomic_output, reading, writing
+from jaxcomp.files import atomic_output, output_folder, reading, writing
 from jaxcomp.recording import setting_differences
 from jaxcomp.robot_params import json_ready, write_json_atomic
+from jaxcomp.studies.processes import Processes, together
 
 #: The folder of the chunk files inside a study's output folder.
 CHUNKS_DIR = "chunks"
@@ -147,3 +150,67 @@ def _read_json(path: Path) -> Any:
         return json.loads(path.read_text())
     except (OSError, ValueError):
         return None
+
+
+def run_chunks(
+    processes: Processes,
+    chunks: Sequence[Chunk],
+    store: ChunkStore | None,
+    compute: Callable[[Chunk], dict],
+    *,
+    settings: dict,
+    resume: bool,
+    progress: bool,
+) -> list[dict] | None:
+    """Every chunk's parts, in order: each process computes its own chunks (``Processes.mine``;
+    ``compute(chunk)`` -> {part: {name: array}}) into ``store`` (when given: ``settings``
+    checked, ``resume`` keeping the finished ones there) with a progress bar over the worlds;
+    process 0 returns all chunks' parts once every process is done, the others None."""
+    lead = processes.index == 0
+    if store is not None:
+        together(processes, lambda: lead and store.prepare(settings, resume),
+                 "to prepare the output folder")  # fmt: skip
+    mine, kept = processes.mine(chunks), {}
+    worlds = sum(len(c.rows) for c in chunks)
+
+    def run_mine() -> None:
+        bar = tqdm(total=sum(len(c.rows) for c in mine), unit="world",
+                   desc=f"{worlds} worlds", disable=not progress)  # fmt: skip
+        for chunk in mine:
+            if store is None or not store.done(chunk):
+                parts = compute(chunk)
+                if store is None:
+                    kept[chunk.index] = parts
+                else:
+                    store.write(chunk, parts)
+            bar.update(len(chunk.rows))
+        bar.close()
+
+    together(processes, run_mine, "to run its chunks")
+    if not lead:
+        return None
+    return [kept[c.index] if store is None else store.read(c) for c in chunks]
+
+
+R = TypeVar("R")
+T = TypeVar("T")
+
+
+def into_folder(
+    out: Path, processes: Processes, run: Callable[[Path], R], write: Callable[[Path, R], T]
+) -> T | None:
+    """A chunked study ``run(folder)`` into the output folder ``out``: process 0 creates and
+    locks it first (``files.output_folder``: FileError before minutes of simulation), the
+    others wait for it and run their chunks into it; process 0 then writes the outputs
+    (``write(folder, result)``) and removes the chunk files, and returns what ``write`` does
+    (the others None). On error nothing is written but the finished chunks."""
+    where = "to open the output folder"
+    if processes.index != 0:
+        together(processes, lambda: None, where)
+        run(Path(out))
+        return None
+    with contextlib.ExitStack() as stack:
+        folder = together(processes, lambda: stack.enter_context(output_folder(out)), where)
+        done = write(folder, run(folder))
+        ChunkStore(folder / CHUNKS_DIR).remove()
+        return done
