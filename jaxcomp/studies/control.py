@@ -45,6 +45,8 @@ from jaxcomp.files import writing
 from jaxcomp.hardware.mjx import (
     SETTLE_STEPS,
     BatchTruth,
+    MjxSimulator,
+    Policy,
     PushSchedule,
     fault_names,
 )
@@ -287,8 +289,8 @@ class _Study(NamedTuple):
     steps: int
     trajectory: Trajectory
     reference: np.ndarray
-    policy: object
-    sim: object
+    policy: Policy
+    sim: MjxSimulator
 
     def run_settings(self) -> dict:
         """The settings its chunk files belong to (``ChunkStore``)."""
