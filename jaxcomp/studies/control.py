@@ -441,7 +441,7 @@ def _report(study: _Study, world: dict, timing: dict, total: float, processes: i
         "processes": processes,
         "chunk_worlds": st.chunk_worlds,
         "config": {
-            "model": MODEL,
+            "model": study.robot.name,
             "gains": json_ready(dataclasses.asdict(study.gains)),
             "force_N": st.force,
             "push_direction": st.push,
