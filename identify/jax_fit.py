@@ -1048,20 +1048,65 @@ def _fit_moments(model: FitModel, m: SweepMoments) -> tuple[Solution, jax.Array]
     return jax.vmap(solve.__wrapped__, in_axes=(None, 0))(_key(model), st), coef
 
 
-def _compiled_fit(model: FitModel, chunk: SweepMoments, shape: tuple) -> tuple[Callable, float]:
+def _compiled_fit(
+    model: FitModel, chunk: SweepMoments, shape: tuple, options: dict | None = None
+) -> tuple[Callable, float]:
     """``_fit_moments`` compiled ahead of time for ``chunk`` (so that its time is known),
     kept on the robot per model and ``shape`` = (batch, sweeps, mesh); and the seconds spent
-    compiling it now (0 when it was compiled before)."""
+    compiling it now (0 when it was compiled before). ``options``: XLA compiler options."""
     seconds = 0.0
 
     def build() -> Callable:
         nonlocal seconds
         t0 = time.perf_counter()
-        compiled = _fit_moments.lower(model, chunk).compile()
+        compiled = _fit_moments.lower(model, chunk).compile(options)
         seconds = time.perf_counter() - t0
         return compiled
 
-    return model.robot.cached(("jax_fit.fit_batch", model, *shape), build), seconds
+    types = tuple(str(a.dtype) for a in jax.tree.leaves(chunk))
+    return model.robot.cached(("jax_fit.fit_batch", model, *shape, types), build), seconds
+
+
+def _batch_input(
+    moments: SweepMoments, batch: int, mesh: Mesh | None
+) -> tuple[SweepMoments, int, int, Callable]:
+    """``fit_batch``'s input: (the moments with their sweeps padded to the bucket size and
+    float gravity and payload, rows per batch (``batch`` rounded up to the mesh), the padded
+    sweep count, the function that places a batch on the mesh)."""
+    shards = 1 if mesh is None else mesh.size
+    b = -(-max(1, int(batch)) // shards) * shards
+    size = _bucket(moments.moments.shape[1])
+    padded = _padded(moments, size, axis=1)
+    padded = padded._replace(
+        payload_mass=np.asarray(padded.payload_mass, float),
+        gravity=np.asarray(padded.gravity, float),
+        payload_com=np.asarray(padded.payload_com, float),
+    )
+    place = (
+        (lambda x: x)
+        if mesh is None
+        else partial(jax.device_put, device=NamedSharding(mesh, PartitionSpec("batch")))
+    )
+    return padded, b, size, place
+
+
+def compile_fit_batch(
+    model: FitModel, like: SweepMoments, batch: int, mesh: Mesh | None = None
+) -> float:
+    """Compile ``fit_batch``'s program for batches of ``batch`` recordings with moments like
+    ``like`` (stacked; any number of rows) ahead of the moments themselves, e.g. while the
+    simulation that makes them runs on the same device: without autotuning, which would
+    time its candidate kernels behind that work; the seconds spent (0 when compiled
+    before)."""
+    padded, b, size, _ = _batch_input(like, batch, mesh)
+    sharding = None if mesh is None else NamedSharding(mesh, PartitionSpec("batch"))
+    shaped = jax.tree.map(
+        lambda a: jax.ShapeDtypeStruct(
+            (b, *np.shape(a)[1:]), np.asarray(a).dtype, sharding=sharding
+        ),
+        padded,
+    )
+    return _compiled_fit(model, shaped, (b, size, mesh), {"xla_gpu_autotune_level": 0})[1]
 
 
 def fit_batch(
@@ -1087,21 +1132,8 @@ def fit_batch(
     w = int(moments.moments.shape[0])
     if w < 1 or moments.moments.ndim != 4:
         raise InputError("moments must be stacked: moments (W, S, 6, 6) with W >= 1")
-    shards = 1 if mesh is None else mesh.size
-    b = w if batch is None else max(1, min(int(batch), w))
-    b = -(-b // shards) * shards
-    size = _bucket(moments.moments.shape[1])
-    padded = _padded(moments, size, axis=1)
-    padded = padded._replace(
-        payload_mass=np.asarray(padded.payload_mass, float),
-        gravity=np.asarray(padded.gravity, float),
-        payload_com=np.asarray(padded.payload_com, float),
-    )
-    place = (
-        (lambda x: x)
-        if mesh is None
-        else partial(jax.device_put, device=NamedSharding(mesh, PartitionSpec("batch")))
-    )
+    rows = w if batch is None else max(1, min(int(batch), w))
+    padded, b, size, place = _batch_input(moments, rows, mesh)
     compile_seconds, seconds = 0.0, 0.0
     sols, coefs = [], []
     for start in range(0, w, b):

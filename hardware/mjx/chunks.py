@@ -2,12 +2,13 @@
 
 A run calls one compiled chunk function per K steps (per-world state stays on the device
 between calls) and keeps every k-th sample. ``scan_decimated`` is the ``lax.scan`` of such a
-chunk that keeps only the recorded samples; ``chunk_length`` chooses K.
+chunk that keeps only the recorded samples; ``chunk_length`` chooses K; ``over_worlds`` maps
+one world's step over the worlds.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax
@@ -83,3 +84,25 @@ def scan_decimated(
         return c, kept
 
     return jax.lax.scan(group, carry, (jnp.arange(groups), xs))
+
+
+def over_worlds(fn: Callable, backend: str, in_axes: Sequence[int | None]) -> Callable:
+    """``fn`` of one world mapped over the leading world axis of its arguments whose
+    ``in_axes`` entry is 0 (None: shared): ``jax.vmap`` on accelerators; on the CPU a loop over
+    the worlds (``lax.map``), where each world's solver loops stop when that world is done
+    (vmapped, every world runs to the slowest's count and computes both branches of every
+    ``cond``: 1.4x the time per step for two Gen3 Lite worlds on a 2-core CPU, 2.3x for one).
+    Either way world w's numbers depend on no other world."""
+    if backend != "cpu":
+        return jax.vmap(fn, in_axes=tuple(in_axes))
+
+    def mapped(*args):
+        mine = tuple(a for a, ax in zip(args, in_axes, strict=True) if ax == 0)
+
+        def one(x):
+            it = iter(x)
+            return fn(*(next(it) if ax == 0 else a for a, ax in zip(args, in_axes, strict=True)))
+
+        return jax.lax.map(one, mine)
+
+    return mapped

@@ -27,7 +27,7 @@ import numpy as np
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.interaction import Push
-from jaxcomp.hardware.mjx.chunks import PyTree, chunk_length, scan_decimated
+from jaxcomp.hardware.mjx.chunks import PyTree, chunk_length, over_worlds, scan_decimated
 from jaxcomp.hardware.mjx.faults import (
     FAULT_EFFORT,
     FAULT_LIMIT,
@@ -393,7 +393,7 @@ def _build(
         )
         return select(valid, new, carry), (q1, dq1, cur1, cmd)
 
-    vworld = jax.vmap(world, in_axes=(0, 0, 0, None, None, None))
+    vworld = over_worlds(world, sim.backend, (0, 0, 0, None, None, None))
 
     def chunk_fn(f, p, carry, refs, start, n_valid):
         def step(c, i, ref):

@@ -26,7 +26,7 @@ from jax.sharding import PartitionSpec as P
 
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
-from jaxcomp.hardware.mjx.chunks import chunk_length, scan_decimated
+from jaxcomp.hardware.mjx.chunks import chunk_length, over_worlds, scan_decimated
 from jaxcomp.hardware.mjx.mesh import placement, world_padding
 from jaxcomp.hardware.mjx.model import WORLD_MODEL_FIELDS
 from jaxcomp.hardware.mjx.step import implicitfast_step
@@ -39,6 +39,10 @@ if TYPE_CHECKING:
 #: max |q| rad, |dq| rad/s, |current| A differences over a recorded plan (measured: 7.6e-9,
 #: 3.1e-7, 1.4e-6).
 AGREEMENT = {"q": 2e-8, "dq": 1e-6, "current": 5e-6}
+
+#: The recorded worlds of a run's compiled program come in multiples of this (at least one
+#: multiple, also when none is recorded).
+RECORD_BUCKET = 4
 
 #: ``run``'s phase of a step, per reference group: the plan (faults count), settling (the
 #: reference held, faults not counted), and a restart: the world set at rest at the
@@ -168,13 +172,22 @@ def run(
     n_rec = -(-t_total // every)
     xs = _reduction_rows(reduce, n_rec, groups)
     shape = lambda a: (np.shape(a), np.result_type(a).str)  # noqa: E731
-    red_key = None if reduce is None else (reduce.key, str(jax.tree.map(shape, (reduce.init, xs))))
-    key = ("open", wp, chunk, every, groups, limits, sim.mesh, red_key, rows.size)
+    row = lambda a: (np.shape(a)[1:], np.result_type(a).str)  # noqa: E731  any plan length
+    red_key = (
+        None
+        if reduce is None
+        else (reduce.key, str(jax.tree.map(shape, reduce.init)), str(jax.tree.map(row, xs)))
+    )
+    # the recorded worlds padded to a multiple of RECORD_BUCKET: runs recording a few
+    # worlds (or none) share one compiled program
+    size = max(RECORD_BUCKET, -(-rows.size // RECORD_BUCKET) * RECORD_BUCKET)
+    padded_rows = np.r_[rows, np.zeros(size - rows.size, np.int64)]
+    key = ("open", wp, chunk, every, groups, limits, sim.mesh, red_key, padded_rows.size)
     step = None if reduce is None else reduce.step
     fn = sim._compiled_function(key, lambda: _build(sim, chunk, every, *limits, step))
     put, put_shared = placement(sim.mesh)
     fields = put(fields)
-    rows_dev = put_shared(rows.astype(np.int32))
+    rows_dev = put_shared(padded_rows.astype(np.int32))
     clock.mark()
     zeros = np.zeros((wp, n), dtype)
     acc = () if reduce is None else _broadcast(reduce.init, wp, sim.mesh, put_shared)
@@ -213,7 +226,7 @@ def run(
         """Copy a chunk's samples to the host, stream them and report progress."""
         s, k, rec = pending
         nr = -(-k // every)  # samples of the chunk's valid steps
-        q, dq, cur = (np.asarray(a)[:, :nr] for a in rec)
+        q, dq, cur = (np.asarray(a)[: rows.size, :nr] for a in rec)
         first = s // every
         if out:
             out["q"][:, first : first + nr] = q
@@ -310,7 +323,7 @@ def _build(
         out = step_fn(m, d)[:4]
         return tuple(a.astype(dtype) for a in out)
 
-    vstep = jax.vmap(world_step, in_axes=(0, 0, 0, 0, 0))
+    vstep = over_worlds(world_step, sim.backend, (0, 0, 0, 0, 0))
 
     def step(f, carry, i, x, start, n_valid):
         qpos, qvel, qacc, fault = carry

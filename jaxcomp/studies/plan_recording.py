@@ -156,6 +156,15 @@ def simulate(
     )
 
 
+def moments_like(sim: MjxSimulator, signal: PlanSignal, every: int) -> SweepMoments:
+    """One true robot's sweep moments as ``simulate`` returns them (from zero sums; in turn
+    or side by side, the same sweeps in plan order): their shapes and types, e.g. to compile
+    the fits while the worlds still run."""
+    plan = signal_stream_plan(signal, every)
+    init = sweep_reduction([plan], sim.n, sim.current_lag).init
+    return streamed_moments(StreamSums(*(np.asarray(a)[None] for a in init)), plan)
+
+
 def _run(sim, truth, q_ref, start, seed, every, progress, width, steps, length, reduce, record,
          world_ids, group, timing, phase=None, noise_step=None):  # fmt: skip
     """One MJX run of ``simulate``, its timing added to ``timing`` (s: wall time,
@@ -232,7 +241,7 @@ def _simulate_parallel(
         mine = int(np.count_nonzero(offset + rows < keep))
         if (mine > 0) not in layouts:
             layouts[mine > 0] = _Layout.of(signal, start, every, mine > 0, sim)
-        seg, lanes, plans, order, reduce = layouts[mine > 0]
+        seg, lanes, _, _, reduce = layouts[mine > 0]
         length, n_lane = lanes.q_ref.shape[:2]
         record = (np.arange(n_lane)[:, None] * width + np.arange(nk)).ravel()
         rec = _run(sim, truth_rows(truth, np.tile(rows, n_lane)), lanes.q_ref,
@@ -242,12 +251,7 @@ def _simulate_parallel(
                    lanes.plan_step)  # fmt: skip
         world_steps += width * n_lane * (length + SETTLE_STEPS)
         t0 = time.perf_counter()
-        sums = StreamSums(*rec.reduced)
-        per_lane = [
-            streamed_moments(StreamSums(*(a[b * width : (b + 1) * width] for a in sums)), p)
-            for b, p in enumerate(plans)
-        ]
-        moments.append(join_sweeps(per_lane, order))
+        moments.append(layouts[mine > 0].moments(StreamSums(*rec.reduced), width))
         timing["simulate_moments"] += time.perf_counter() - t0
         faults.append(_plan_fault(rec.fault_step.reshape(n_lane, width), lanes, seg.first))
         if mine:  # the kept worlds' samples of each segment, in plan order
@@ -284,6 +288,15 @@ class _Layout(NamedTuple):
         keys = np.concatenate([_sweep_keys(s, every) for s in lanes.signals])
         reduce = sweep_reduction(plans, sim.n, sim.current_lag)
         return cls(seg, lanes, plans, np.argsort(keys, kind="stable"), reduce)
+
+    def moments(self, sums: StreamSums, width: int) -> SweepMoments:
+        """The sweep moments, in plan order, of ``width`` true robots from their lanes'
+        ``sums`` (lane b's robots at rows b * width ... (b + 1) * width - 1)."""
+        per_lane = [
+            streamed_moments(StreamSums(*(a[b * width : (b + 1) * width] for a in sums)), p)
+            for b, p in enumerate(self.plans)
+        ]
+        return join_sweeps(per_lane, self.order)
 
 
 def _sweep_keys(signal: PlanSignal, every: int) -> np.ndarray:
