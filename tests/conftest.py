@@ -1,8 +1,14 @@
 """Shared fixtures: one simulated calibration recording per session (it takes ~15 s).
 
-experiments/ goes on sys.path: the tests use its arm generators (``odd_arms``)."""
+experiments/ goes on sys.path: the tests use its arm generators (``odd_arms``). The session
+keeps compiled XLA programs in one fresh folder (``$JAXCOMP_CACHE``, as the CLI does), shared
+by the test processes and the subprocesses they start: a program that several tests compile
+is compiled once per session, never taken from an earlier session."""
 
+import os
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +20,26 @@ from jaxcomp.identify.plan_design import default_plan
 from jaxcomp.identify.recorder import record
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+
+
+def pytest_configure(config):
+    """The session's compilation cache: made by the controlling process (inherited by the
+    xdist workers and every subprocess), used by each process's in-process JAX."""
+    if "PYTEST_XDIST_WORKER" not in os.environ:
+        where = tempfile.mkdtemp(prefix="jaxcomp-tests-xla-")
+        config._jaxcomp_cache = where
+        os.environ["JAXCOMP_CACHE"] = where
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", os.environ["JAXCOMP_CACHE"])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+def pytest_unconfigure(config):
+    where = getattr(config, "_jaxcomp_cache", None)
+    if where is not None:
+        shutil.rmtree(where, ignore_errors=True)
+
 
 #: Viscous friction of the simulated truth, N m s/rad: unmodelled by the default plan's fit.
 VISCOUS = 0.003

@@ -24,6 +24,10 @@ from jaxcomp.hardware import ControlMode
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
+# one worker runs the module in order: the browser tests share one console (module fixture),
+# and the stop test stops the run that the tracking test started
+pytestmark = pytest.mark.xdist_group("console")
+
 
 # ----------------------------------------------------------------------------- the ring
 
