@@ -35,22 +35,6 @@ def pytest_configure(config):
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
-#: The modules with the longest tests (MJX compiles and studies on the CPU), started first so
-#: that no xdist worker is left alone with one of them at the end of the run.
-SLOWEST_FIRST = (
-    "test_study_calibration.py",
-    "test_study_control.py",
-    "test_mjx_sim.py",
-    "test_pipeline_any_arm.py",
-)
-
-
-def pytest_collection_modifyitems(config, items):
-    """``SLOWEST_FIRST`` modules first, in that order; the rest as collected (stable)."""
-    rank = {name: k for k, name in enumerate(SLOWEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
-
-
 def pytest_unconfigure(config):
     where = getattr(config, "_jaxcomp_cache", None)
     if where is not None:
