@@ -145,16 +145,20 @@ def _shot(element, tries: int = 5) -> bytes:
 
 
 def _steady_height(sim, timeout: float = 8.0) -> float:
-    """The end effector's height (m) once it moves less than 0.2 mm in 0.2 s (the simulator
-    runs slower than real time on a loaded machine, so a fixed wait may be too short)."""
+    """The end effector's height (m) once it moves less than 0.2 mm in 0.2 s of simulated
+    time (on a loaded machine the simulator runs slower than real time: a wait on the wall
+    clock may end before the arm has settled)."""
     end = time.monotonic() + timeout
-    z = sim.ee_position()[2]
+    t0, z0 = sim.data.time, sim.ee_position()[2]
     while True:
-        time.sleep(0.2)
-        now = sim.ee_position()[2]
-        if abs(now - z) < 2e-4 or time.monotonic() > end:
-            return float(now)
-        z = now
+        time.sleep(0.05)
+        t, z = sim.data.time, sim.ee_position()[2]
+        if time.monotonic() > end:
+            return float(z)
+        if t - t0 >= 0.2:
+            if abs(z - z0) < 2e-4:
+                return float(z)
+            t0, z0 = t, z
 
 
 def _scene(page) -> np.ndarray:
