@@ -377,12 +377,12 @@ def chunk_results(
         disable=not progress,
         leave=False,
     )
-    with ThreadPoolExecutor(1) as aside:
+    with ThreadPoolExecutor(1) as pool:
         compiling: list[Future] = []
 
         def stepped(k: int) -> None:  # the worlds step (their program is compiled): the
             if not compiling:  # fits compile beside them
-                compiling.append(aside.submit(_compile_fit, study, gr.signal))
+                compiling.append(pool.submit(_compile_fit, study, gr.signal))
             bar.update(k)
 
         simulated = simulate(
@@ -399,14 +399,14 @@ def chunk_results(
         )
         bar.close()
         t0 = time.perf_counter()
-        aside = compiling[0].result() if compiling else 0.0
+        beside = compiling[0].result() if compiling else 0.0  # s compiling, off the path
         waited = time.perf_counter() - t0
     timing = dict(simulated.timing)
     t0 = time.perf_counter()
     fits = _fit(study, simulated.moments, count)
     timing["fit_jax"] = waited + time.perf_counter() - t0
     timing["fit_jax_compile"] = waited + fits.compile_seconds  # the part not beside the worlds
-    timing["fit_jax_compile_aside"] = aside
+    timing["fit_jax_compile_aside"] = beside
     timing["fit_jax_run"] = fits.seconds
     t0 = time.perf_counter()
     gravity_batch = min(study.fit_batch, GRAVITY_BATCH)  # one shape in every chunk
