@@ -39,7 +39,9 @@ from jaxcomp.identify.random_plans import plan_seed
 from jaxcomp.recording import load_recording
 from jaxcomp.robot_params import RobotParams, json_ready
 from jaxcomp.studies import calibration as sc
-from jaxcomp.studies.calibration_estimates import jax_truth_vector
+from jaxcomp.studies.calibration_estimates import Estimates, jax_truth_vector
+from jaxcomp.studies.calibration_report import study_report
+from jaxcomp.studies.calibration_statistics import worst_coverage
 from jaxcomp.studies.processes import CLUSTER_VARIABLES
 from jaxcomp.studies.study_chunks import ChunkStore, study_chunks
 
@@ -89,6 +91,33 @@ def study(robot, tiny_plan, tmp_path_factory):
 
 
 # ----------------------------------------------------------------------------- no MJX
+def test_worst_coverage_names_the_parameter_whose_std_are_too_small():
+    rng = np.random.default_rng(3)
+    w = 400
+    z = rng.standard_normal((w, 3)) * [1.0, 1.6, 9.0]  # error / std per parameter
+    std = np.full((w, 3), 0.01)
+    identified = np.ones((w, 3), bool)
+    identified[50:, 2] = False  # the worst one is determined in 50 fits only: not counted
+    est = Estimates(
+        ["a", "b", "c"],
+        ["A"] * 3,
+        1 + z * std,
+        np.ones((w, 3)),
+        std,
+        identified,
+        np.ones(w, bool),
+        np.zeros((w, 1)),
+        np.zeros(w),
+        np.ones((w, 1), bool),
+    )
+    worst = worst_coverage(est)
+    inside = np.mean(np.abs(z[:, 1]) < 1.96)
+    assert worst == {"parameter": "b", "coverage_95": pytest.approx(inside), "count": w}
+    assert 0.7 < inside < 0.85  # std 1.6x too small
+    assert worst_coverage(est, min_fits=w + 1) is None
+    assert worst_coverage(est, min_fits=50)["parameter"] == "c"
+
+
 def test_draw_truth_is_per_world_and_within_its_spread(robot):
     spread = sc.TruthSpread()
     big, small = sc.draw_truth(robot, 64, 7, spread), sc.draw_truth(robot, 3, 7, spread)
@@ -257,6 +286,16 @@ def test_report_files_are_complete_and_valid(study):
     assert arrays["scipy_estimate"].shape == (2, 12)
     assert set(report["jax"]["parameters"]) == set(names)
     assert "coverage of +-1.96 std" in output and "ratio jax" in output
+
+
+@TINY_STUDY
+def test_faulted_worlds_are_counted_per_plan_and_said(study):
+    report, arrays, _, _ = study
+    assert report["faulted_by_plan"] == [0] and "faulted" not in sc.summary(report)
+    changed = dict(arrays) | {"fault_step": np.array([-1, 7])}  # world 1 stopped at step 7
+    again = study_report(changed, dict(report) | {"world_steps": 1.0})
+    assert again["faulted_worlds"] == 1 and again["faulted_by_plan"] == [1]
+    assert "1 of 2 worlds faulted before their plan ended" in sc.summary(again)
 
 
 @TINY_STUDY

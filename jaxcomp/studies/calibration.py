@@ -685,12 +685,24 @@ def summary(report: dict) -> str:
             "no ratio reported identified (in one mounting each rests partly on the COM prior; "
             "a recording with a known payload identifies them)"
         )
-    cov = report["coverage"]["jax"]["identified"]
+    cov, worst = report["coverage"]["jax"]["identified"], report["coverage"]["jax"]["worst"]
     t = report["timing_s"]
     lines.append(
         f"coverage of +-1.96 std (JAX, {cov['count']} determined estimates): "
         f"{pct(cov['coverage_95'])}; z std {cov['z_std']:.2f}"
+        + (
+            f"; lowest of one parameter: {worst['parameter']} {pct(worst['coverage_95'])} "
+            f"of {worst['count']}"
+            if worst
+            else ""
+        )
     )
+    if report["faulted_worlds"]:
+        lines.append(
+            f"{report['faulted_worlds']} of {report['worlds']} worlds faulted before their plan "
+            "ended (following error, overspeed, a limit: a true robot that cannot follow it) "
+            "and are left out; per plan: " + ", ".join(str(c) for c in report["faulted_by_plan"])
+        )
     lines.append(
         f"time: simulate {t['simulate']:.1f} s (compile {t['simulate_compile']:.1f} s, "
         f"{report['throughput']['world_steps_per_s']:.3g} world-steps/s), JAX fits "

@@ -123,6 +123,9 @@ def study_report(arrays: Mapping[str, np.ndarray], run: Mapping[str, Any]) -> di
     head = {k: v for k, v in run.items() if k not in ("timing_s", "world_steps")}
     return head | {
         "faulted_worlds": int((fault_step >= 0).sum()),
+        "faulted_by_plan": np.bincount(
+            arrays["plan_group"][fault_step >= 0], minlength=len(run["plan"]["groups"])
+        ).tolist(),
         "jax": {
             "converged": int(converged.sum()),
             "used": int(jax_est.ok.sum()),

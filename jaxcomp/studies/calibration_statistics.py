@@ -16,6 +16,8 @@ from jaxcomp.studies.calibration_estimates import Estimates
 
 #: |error| < Z95 std holds 95 % of the time when the reported std are right.
 Z95 = 1.96
+#: Fewest determined fits of one parameter for its own coverage to count in ``worst``.
+WORST_MIN_FITS = 100
 
 
 def parameter_table(est: Estimates, relative: int) -> dict:
@@ -65,8 +67,28 @@ def coverage_summary(est: Estimates) -> dict:
             "z_std": float(np.std(z, ddof=1)) if z.size > 1 else math.nan,
         }
 
-    return {"identified": pooled(slice(None))} | {
+    return {"identified": pooled(slice(None)), "worst": worst_coverage(est)} | {
         k: pooled(idx) for k, idx in groups(est.names).items()
+    }
+
+
+def worst_coverage(est: Estimates, min_fits: int = WORST_MIN_FITS) -> dict | None:
+    """The determined parameter whose own coverage of +-1.96 std is lowest, over the
+    parameters determined in at least ``min_fits`` fits: {parameter, coverage_95, count};
+    None when none is."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = est.error / est.std
+    use = est.identified & np.isfinite(z)
+    count = use.sum(axis=0)
+    inside = (use & (np.abs(z) < Z95)).sum(axis=0)
+    rows = np.flatnonzero(count >= min_fits)
+    if not rows.size:
+        return None
+    p = rows[np.argmin(inside[rows] / count[rows])]
+    return {
+        "parameter": est.names[p],
+        "coverage_95": float(inside[p] / count[p]),
+        "count": int(count[p]),
     }
 
 
