@@ -22,8 +22,12 @@ BIN_WIDTH = np.deg2rad(1.0)
 #: A sample is steady when its swept-joint speed is within (1 - STEADY_FRACTION) of its pass's
 #: speed, either side (ramps, overshoot and ringing stay out).
 STEADY_FRACTION = 0.98
-#: Steady samples closer than this (s) to the first or last of their pass are left out.
+#: Steady samples closer than this (s) to the last of their pass are left out.
 STEADY_TRIM = 0.05
+#: Steady samples closer than this (s) to the first of their pass are left out: after the
+#: acceleration ramp the servo rings (the Gen3's base joint at 35 deg/s: the current 40 % low
+#: over the first 0.1 s, 12 % high over the next, settled after about 0.3 s).
+STEADY_SETTLE = 0.3
 #: Medians over a pass (its speed; see ``steady``) take every MEDIAN_STRIDE-th sample of it.
 MEDIAN_STRIDE = 16
 
@@ -81,7 +85,10 @@ def sweep_ids(joint: np.ndarray, direction: np.ndarray) -> np.ndarray:
 
 
 def steady(
-    rec: Recording, fraction: float = STEADY_FRACTION, trim: float = STEADY_TRIM
+    rec: Recording,
+    fraction: float = STEADY_FRACTION,
+    trim: float = STEADY_TRIM,
+    settle: float = STEADY_SETTLE,
 ) -> np.ndarray:
     """(N,) bool: the constant-speed samples of every sweep pass.
 
@@ -89,8 +96,8 @@ def steady(
     (1 - ``fraction``) of the pass speed, either side (the pass speed: the mean speed of the
     samples at >= ``fraction`` of the median speed of every ``MEDIAN_STRIDE``-th sample of the
     pass; the median alone may fall on a ramp when a pass has few samples), and
-    it lies more than ``trim`` s inside the first and last such sample (the servo still
-    accelerates there).
+    it lies more than ``settle`` s after the first such sample (the servo still rings there)
+    and more than ``trim`` s before the last.
     """
     ids = sweep_ids(rec.joint, rec.direction)
     swept = np.flatnonzero(ids >= 0)
@@ -109,7 +116,7 @@ def steady(
         fast = part[np.abs(speed[part] - ref) <= (1.0 - fraction) * ref]
         if fast.size == 0:
             continue
-        inside = (t[fast] > t[fast[0]] + trim) & (t[fast] < t[fast[-1]] - trim)
+        inside = (t[fast] > t[fast[0]] + settle) & (t[fast] < t[fast[-1]] - trim)
         keep[swept[fast[inside]]] = True
     return keep
 

@@ -40,7 +40,7 @@ import numpy as np
 
 from jaxcomp.constants import STANDARD_GRAVITY
 from jaxcomp.errors import InputError
-from jaxcomp.identify.bins import MEDIAN_STRIDE, STEADY_FRACTION, STEADY_TRIM
+from jaxcomp.identify.bins import MEDIAN_STRIDE, STEADY_FRACTION, STEADY_SETTLE, STEADY_TRIM
 from jaxcomp.recording import Recording
 
 
@@ -465,7 +465,7 @@ def _in_memory(x: jax.Array) -> jax.Array:
 def reduce_packed(p: Packed, L: int, fraction: float, trim: float) -> SweepMoments:
     """Sweep moments of one packed recording, its longest pass at most ``L`` samples (pure,
     vmap-able; ``packed_moments`` runs it on a stack). ``fraction`` and ``trim``: see
-    ``identify.bins.steady``.
+    ``identify.bins.steady`` (whose ``settle`` is ``STEADY_SETTLE`` here).
 
     Block by block (``BLOCK`` samples, each of one pass or none): per-pass sums are sums over
     blocks, and the moments are one small matrix product per block.
@@ -503,7 +503,7 @@ def reduce_packed(p: Packed, L: int, fraction: float, trim: float) -> SweepMomen
     hi = jnp.max(jnp.where(fast, t, -jnp.inf), axis=1)[:, None]
     lo = jnp.min(jnp.where(member, lo, jnp.inf), axis=0)[k][:, None]
     hi = jnp.max(jnp.where(member, hi, -jnp.inf), axis=0)[k][:, None]
-    steady = fast & (t > lo + trim) & (t < hi - trim)
+    steady = fast & (t > lo + STEADY_SETTLE) & (t < hi - trim)
     v = sign * mean(speed, steady)  # (2 S,) rad/s
     w = steady.astype(t.dtype)
     count = jnp.round(total(1.0, steady)).astype(int).reshape(S, 2).sum(axis=1)
@@ -621,6 +621,7 @@ def stream_plan(
     joint: np.ndarray,
     direction: np.ndarray,
     trim: float = STEADY_TRIM,
+    settle: float = STEADY_SETTLE,
 ) -> StreamPlan:
     """The ``StreamPlan`` of R recorded samples at ``t`` (R,) s labelled ``joint`` and
     ``direction`` (R,) (as a ``Recording``), whose commanded pose is ``q_cmd`` (R, n) rad and
@@ -628,7 +629,8 @@ def stream_plan(
 
     The steady samples of a pass, decided from the plan alone so that moments can be summed
     while the samples arrive: those at the pass's cruise (its largest commanded speed, within
-    ``CRUISE_TOLERANCE``) more than ``trim`` s inside its first and last such sample.
+    ``CRUISE_TOLERANCE``) more than ``settle`` s after its first such sample and ``trim`` s
+    before its last.
     ``stream_add`` also drops those whose measured speed is off the cruise by more than
     (1 - ``fraction``) of it (ripple, stick-slip), as ``identify.bins.steady``.
     """
@@ -654,7 +656,7 @@ def stream_plan(
                 continue
             tt = t[part]
             on = np.flatnonzero(at)
-            steady = at & (tt > tt[on[0]] + trim) & (tt < tt[on[-1]] - trim)
+            steady = at & (tt > tt[on[0]] + settle) & (tt < tt[on[-1]] - trim)
             speed[part] = np.where(steady, cruise, 0.0)
             if steady.any():
                 first_steady = f + int(np.argmax(steady))

@@ -9,7 +9,7 @@ import pytest
 from jaxcomp import recording
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import FileError, InputError, JaxcompError
-from jaxcomp.identify.bins import bin_sweeps, steady
+from jaxcomp.identify.bins import STEADY_SETTLE, STEADY_TRIM, bin_sweeps, steady
 from jaxcomp.recording import (
     Recording,
     RecordingWriter,
@@ -430,10 +430,13 @@ def test_steady_excludes_the_ramps():
     assert ramp.sum() >= 300  # four 100 ms ramps, less their fast ends
     assert not keep[ramp].any() and not keep[rec.joint < 0].any()
     assert np.all(constant[keep])
-    assert keep.sum() >= 0.8 * constant.sum()
-    for d in (-1, 1):  # each pass keeps one contiguous stretch
-        rows = np.flatnonzero(keep & (rec.direction == d))
+    for d in (-1, 1):  # each pass keeps one contiguous stretch: its cruise less the servo's
+        rows = np.flatnonzero(keep & (rec.direction == d))  # settling and the trimmed end
         assert rows.size and np.all(np.diff(rows) == 1)
+        cruise = np.flatnonzero(constant & (rec.direction == d))
+        start, end = rec.t[rows[0]] - rec.t[cruise[0]], rec.t[cruise[-1]] - rec.t[rows[-1]]
+        assert abs(start - STEADY_SETTLE) <= 0.005  # the ramp's last ms are within 2 %
+        assert abs(end - STEADY_TRIM) <= 0.005
 
 
 def test_bin_means():
