@@ -28,6 +28,10 @@ STEADY_TRIM = 0.05
 #: acceleration ramp the servo rings (the Gen3's base joint at 35 deg/s: the current 40 % low
 #: over the first 0.1 s, 12 % high over the next, settled after about 0.3 s).
 STEADY_SETTLE = 0.3
+#: Passes whose cruise is shorter than this (s) cannot spare ``STEADY_SETTLE``: they leave out
+#: ``STEADY_TRIM`` at the start too (short test plans; random and default plans' passes are
+#: longer).
+SETTLE_CRUISE = 1.5
 #: Medians over a pass (its speed; see ``steady``) take every MEDIAN_STRIDE-th sample of it.
 MEDIAN_STRIDE = 16
 
@@ -84,6 +88,13 @@ def sweep_ids(joint: np.ndarray, direction: np.ndarray) -> np.ndarray:
     return np.where(joint >= 0, ids, -1)
 
 
+def settle_time(cruise, settle: float = STEADY_SETTLE, trim: float = STEADY_TRIM, xp=np):
+    """s left out at the start of a pass whose cruise lasts ``cruise`` s (array or float):
+    ``settle``, or ``trim`` when the cruise is shorter than ``SETTLE_CRUISE``. ``xp``: numpy
+    or jax.numpy."""
+    return xp.where(cruise >= SETTLE_CRUISE, settle, trim)
+
+
 def steady(
     rec: Recording,
     fraction: float = STEADY_FRACTION,
@@ -96,8 +107,8 @@ def steady(
     (1 - ``fraction``) of the pass speed, either side (the pass speed: the mean speed of the
     samples at >= ``fraction`` of the median speed of every ``MEDIAN_STRIDE``-th sample of the
     pass; the median alone may fall on a ramp when a pass has few samples), and
-    it lies more than ``settle`` s after the first such sample (the servo still rings there)
-    and more than ``trim`` s before the last.
+    it lies more than ``settle_time`` s after the first such sample (the servo still rings
+    there) and more than ``trim`` s before the last.
     """
     ids = sweep_ids(rec.joint, rec.direction)
     swept = np.flatnonzero(ids >= 0)
@@ -116,7 +127,8 @@ def steady(
         fast = part[np.abs(speed[part] - ref) <= (1.0 - fraction) * ref]
         if fast.size == 0:
             continue
-        inside = (t[fast] > t[fast[0]] + settle) & (t[fast] < t[fast[-1]] - trim)
+        start = settle_time(t[fast[-1]] - t[fast[0]], settle, trim)
+        inside = (t[fast] > t[fast[0]] + start) & (t[fast] < t[fast[-1]] - trim)
         keep[swept[fast[inside]]] = True
     return keep
 

@@ -40,7 +40,13 @@ import numpy as np
 
 from jaxcomp.constants import STANDARD_GRAVITY
 from jaxcomp.errors import InputError
-from jaxcomp.identify.bins import MEDIAN_STRIDE, STEADY_FRACTION, STEADY_SETTLE, STEADY_TRIM
+from jaxcomp.identify.bins import (
+    MEDIAN_STRIDE,
+    STEADY_FRACTION,
+    STEADY_SETTLE,
+    STEADY_TRIM,
+    settle_time,
+)
 from jaxcomp.recording import Recording
 
 
@@ -503,7 +509,8 @@ def reduce_packed(p: Packed, L: int, fraction: float, trim: float) -> SweepMomen
     hi = jnp.max(jnp.where(fast, t, -jnp.inf), axis=1)[:, None]
     lo = jnp.min(jnp.where(member, lo, jnp.inf), axis=0)[k][:, None]
     hi = jnp.max(jnp.where(member, hi, -jnp.inf), axis=0)[k][:, None]
-    steady = fast & (t > lo + STEADY_SETTLE) & (t < hi - trim)
+    start = settle_time(hi - lo, STEADY_SETTLE, trim, xp=jnp)
+    steady = fast & (t > lo + start) & (t < hi - trim)
     v = sign * mean(speed, steady)  # (2 S,) rad/s
     w = steady.astype(t.dtype)
     count = jnp.round(total(1.0, steady)).astype(int).reshape(S, 2).sum(axis=1)
@@ -629,8 +636,8 @@ def stream_plan(
 
     The steady samples of a pass, decided from the plan alone so that moments can be summed
     while the samples arrive: those at the pass's cruise (its largest commanded speed, within
-    ``CRUISE_TOLERANCE``) more than ``settle`` s after its first such sample and ``trim`` s
-    before its last.
+    ``CRUISE_TOLERANCE``) more than ``settle_time`` s after its first such sample and ``trim``
+    s before its last.
     ``stream_add`` also drops those whose measured speed is off the cruise by more than
     (1 - ``fraction``) of it (ripple, stick-slip), as ``identify.bins.steady``.
     """
@@ -656,7 +663,8 @@ def stream_plan(
                 continue
             tt = t[part]
             on = np.flatnonzero(at)
-            steady = at & (tt > tt[on[0]] + settle) & (tt < tt[on[-1]] - trim)
+            start = settle_time(tt[on[-1]] - tt[on[0]], settle, trim)
+            steady = at & (tt > tt[on[0]] + start) & (tt < tt[on[-1]] - trim)
             speed[part] = np.where(steady, cruise, 0.0)
             if steady.any():
                 first_steady = f + int(np.argmax(steady))

@@ -284,7 +284,7 @@ def test_recorded_currents_match_the_truth(tmp_path):
         sel = rec.joint[fast] == j
         model = r[j] * tau[sel, j] + l[j] * rec.direction[fast][sel]
         resid = rec.current[fast][sel, j] - model
-        assert sel.sum() > 600
+        assert sel.sum() > 1000
         assert abs(resid.mean()) < 0.02, j  # no bias beyond the noise's
         assert resid.std() < 1.5 * noise and np.abs(resid).max() < 6 * noise, j
         for k in np.delete(np.arange(6), j):

@@ -9,7 +9,13 @@ import pytest
 from jaxcomp import recording
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import FileError, InputError, JaxcompError
-from jaxcomp.identify.bins import STEADY_SETTLE, STEADY_TRIM, bin_sweeps, steady
+from jaxcomp.identify.bins import (
+    SETTLE_CRUISE,
+    STEADY_SETTLE,
+    STEADY_TRIM,
+    bin_sweeps,
+    steady,
+)
 from jaxcomp.recording import (
     Recording,
     RecordingWriter,
@@ -420,8 +426,9 @@ def test_close_validates(tmp_path):
 
 
 # --------------------------------------------------------------------- bins
-def test_steady_excludes_the_ramps():
-    rec = validate(synthetic())
+@pytest.mark.parametrize("half", [0.4, 0.9])  # rad: cruises of 1.0 s and 2.5 s
+def test_steady_excludes_the_ramps(half):
+    rec = validate(synthetic(lower=-half, upper=half))
     keep = steady(rec)
     j = 1
     speed = rec.dq[:, j] * rec.direction
@@ -435,7 +442,10 @@ def test_steady_excludes_the_ramps():
         assert rows.size and np.all(np.diff(rows) == 1)
         cruise = np.flatnonzero(constant & (rec.direction == d))
         start, end = rec.t[rows[0]] - rec.t[cruise[0]], rec.t[cruise[-1]] - rec.t[rows[-1]]
-        assert abs(start - STEADY_SETTLE) <= 0.005  # the ramp's last ms are within 2 %
+        long = rec.t[cruise[-1]] - rec.t[cruise[0]] >= SETTLE_CRUISE
+        assert long == (half > 0.5)
+        settle = STEADY_SETTLE if long else STEADY_TRIM  # a short pass cannot spare it
+        assert abs(start - settle) <= 0.005  # the ramp's last ms are within 2 %
         assert abs(end - STEADY_TRIM) <= 0.005
 
 
