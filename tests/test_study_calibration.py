@@ -562,7 +562,9 @@ def test_chunked_interrupted_and_resumed_study_is_the_whole_one(
     """One world per chunk, interrupted after the first chunk and resumed: the same per-world
     arrays and findings as the study in one chunk, bit for bit (each world's truth, noise and
     fit are its own; the fits run in batches of one shape). The finished chunk stays on disk
-    until the report is written; the first --keep-samples worlds' recordings are saved."""
+    until the report is written; the first --keep-samples worlds' recordings are saved. Resumed
+    without a chunk size, it keeps the interrupted run's (the default, 4096 per device, would
+    be the whole study of 2 here)."""
     out = tmp_path / "chunked"
     settings = _tiny(tiny_plan, chunk_worlds=1, keep_samples=1)
     real, calls = sc.chunk_results, []
@@ -587,7 +589,8 @@ def test_chunked_interrupted_and_resumed_study_is_the_whole_one(
         sc.study_into(out, _tiny(tiny_plan, chunk_worlds=1, keep_samples=1, every=5),
                       robot=robot, progress=False, resume=True)  # fmt: skip
     calls.clear()
-    resumed = sc.study_into(out, settings, progress=False, robot=robot, resume=True)
+    unsized = _tiny(tiny_plan, keep_samples=1)
+    resumed = sc.study_into(out, unsized, progress=False, robot=robot, resume=True)
     assert calls == [1]  # the first chunk was kept
     assert resumed.report["chunk_worlds"] == 1 and whole.report["chunk_worlds"] == 2
     _same(whole, resumed, skip=("chunk_worlds",))

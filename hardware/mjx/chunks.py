@@ -17,7 +17,8 @@ import jax.numpy as jnp
 #: A pytree of arrays (nested tuples, lists, dicts and NamedTuples of arrays).
 PyTree = Any
 
-#: Recorded bytes per chunk on an accelerator (bounds the device memory of the samples).
+#: Recorded bytes per chunk and device on an accelerator (bounds the device memory of the
+#: samples).
 CHUNK_BYTES = 256 * 2**20
 
 
@@ -31,9 +32,10 @@ def chunk_length(
     steps: int,
 ) -> int:
     """Steps per compiled call of a run recording ``every``-th sample of (q, dq, current) of
-    ``n`` joints for ``worlds`` worlds over ``steps`` steps: ``chunk_steps`` if given, else 100
-    on the CPU, else as many as keep a chunk's samples within ``CHUNK_BYTES`` (at most 10 000,
-    at most ``steps``); rounded up to a multiple of ``every``."""
+    ``n`` joints for ``worlds`` worlds (of one device) over ``steps`` steps: ``chunk_steps``
+    if given, else 100 on the CPU, else as many as keep a chunk's samples within
+    ``CHUNK_BYTES`` (at most 10 000, at most ``steps``); rounded up to a multiple of
+    ``every``."""
     k = chunk_steps
     if k is None:
         if backend == "cpu":

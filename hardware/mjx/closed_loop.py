@@ -35,7 +35,7 @@ from jaxcomp.hardware.mjx.faults import (
     FAULT_REFUSED,
     FAULT_STOPPED,
 )
-from jaxcomp.hardware.mjx.mesh import placement, world_padding
+from jaxcomp.hardware.mjx.mesh import SHARED, WORLDS, devices, placement, world_padding
 from jaxcomp.hardware.mjx.model import WORLD_MODEL_FIELDS
 from jaxcomp.hardware.mjx.step import implicitfast_step
 from jaxcomp.hardware.mjx.truth import BatchTruth
@@ -241,7 +241,13 @@ def run(
         pstate = jax.tree_util.tree_map(lambda sd: np.zeros(sd.shape, sd.dtype), shapes)
     if every:
         chunk = chunk_length(
-            sim.chunk_steps, sim.backend, wp, n, dtype.itemsize, every, max(steps, settle_steps)
+            sim.chunk_steps,
+            sim.backend,
+            wp // devices(sim.mesh),
+            n,
+            dtype.itemsize,
+            every,
+            max(steps, settle_steps),
         )
     else:
         chunk = sim.chunk_steps or (100 if sim.backend == "cpu" else 1000)
@@ -321,7 +327,8 @@ def _build(
     current_limit: np.ndarray,
 ) -> Callable:
     """The jitted chunk function of ``run``: (fields, params, carry, reference rows (chunk, m),
-    first step, valid steps) -> (carry, recorded samples or None, number of worlds in fault).
+    first step, valid steps) -> (carry, recorded samples or None, the number of worlds in
+    fault on each device (devices,)).
     Carry per world: qpos, qvel, qacc_warmstart, lever of the push (site - body COM, m, from
     the previous step's kinematics, as the CPU Simulator uses it), command, policy state, held
     position, fault step, fault code."""
@@ -402,9 +409,11 @@ def _build(
         carry, rec = scan_decimated(step, carry, refs, every)
         if rec is not None:
             rec = tuple(jnp.swapaxes(a, 0, 1) for a in rec)
-        return carry, rec, jnp.sum(carry[7] >= 0)
+        return carry, rec, jnp.sum(carry[7] >= 0)[None]
 
-    return sim._ahead_of_time(chunk_fn, carry_arg=2)
+    # fields, params, carry, the samples and the fault counts (one per device): per world
+    specs = (WORLDS, WORLDS, WORLDS, SHARED, SHARED, SHARED)
+    return sim._ahead_of_time(chunk_fn, 2, specs, WORLDS)
 
 
 def _per_world(tree: PyTree, worlds: int, name: str) -> PyTree:

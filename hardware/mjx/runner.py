@@ -27,7 +27,7 @@ from jax.sharding import PartitionSpec as P
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.mjx.chunks import chunk_length, over_worlds, scan_decimated
-from jaxcomp.hardware.mjx.mesh import placement, world_padding
+from jaxcomp.hardware.mjx.mesh import SHARED, WORLDS, device_rows, devices, placement, world_padding
 from jaxcomp.hardware.mjx.model import WORLD_MODEL_FIELDS
 from jaxcomp.hardware.mjx.step import implicitfast_step
 from jaxcomp.hardware.mjx.truth import BatchTruth
@@ -166,7 +166,13 @@ def run(
     fields["group"] = group.astype(np.int32)[pad]
     q0 = q0[pad]
     chunk = chunk_length(
-        sim.chunk_steps, sim.backend, wp, n, dtype.itemsize, every, max(t_total, settle_steps, 1)
+        sim.chunk_steps,
+        sim.backend,
+        wp // devices(sim.mesh),
+        n,
+        dtype.itemsize,
+        every,
+        max(t_total, settle_steps, 1),
     )
     limits = (sim.following_error, sim.overspeed)
     n_rec = -(-t_total // every)
@@ -178,16 +184,15 @@ def run(
         if reduce is None
         else (reduce.key, str(jax.tree.map(shape, reduce.init)), str(jax.tree.map(row, xs)))
     )
-    # the recorded worlds padded to a multiple of RECORD_BUCKET: runs recording a few
-    # worlds (or none) share one compiled program
-    size = max(RECORD_BUCKET, -(-rows.size // RECORD_BUCKET) * RECORD_BUCKET)
-    padded_rows = np.r_[rows, np.zeros(size - rows.size, np.int64)]
-    key = ("open", wp, chunk, every, groups, limits, sim.mesh, red_key, padded_rows.size)
+    # each device's recorded worlds, padded to a multiple of RECORD_BUCKET: runs recording a
+    # few worlds (or none) share one compiled program
+    local_rows, where = device_rows(rows, wp, sim.mesh, RECORD_BUCKET)
+    key = ("open", wp, chunk, every, groups, limits, sim.mesh, red_key, local_rows.size)
     step = None if reduce is None else reduce.step
     fn = sim._compiled_function(key, lambda: _build(sim, chunk, every, *limits, step))
     put, put_shared = placement(sim.mesh)
     fields = put(fields)
-    rows_dev = put_shared(padded_rows.astype(np.int32))
+    rows_dev = put(local_rows.astype(np.int32))
     clock.mark()
     zeros = np.zeros((wp, n), dtype)
     acc = () if reduce is None else _broadcast(reduce.init, wp, sim.mesh, put_shared)
@@ -226,7 +231,7 @@ def run(
         """Copy a chunk's samples to the host, stream them and report progress."""
         s, k, rec = pending
         nr = -(-k // every)  # samples of the chunk's valid steps
-        q, dq, cur = (np.asarray(a)[: rows.size, :nr] for a in rec)
+        q, dq, cur = (np.asarray(a)[where, :nr] for a in rec)
         first = s // every
         if out:
             out["q"][:, first : first + nr] = q
@@ -306,7 +311,7 @@ def _build(
     """The jitted chunk function of ``run``: (fields, carry, reference rows (chunk, G, n),
     phase rows (chunk, G) (``PLAN``, ``SETTLE``, ``RESTART``), reduction rows
     (chunk // every, G, ...), the recorded samples' noise steps (chunk // every, G), recorded
-    worlds (M,), first step, valid steps) ->
+    worlds (M,) (indices into the device's own, ``device_rows``), first step, valid steps) ->
     (carry, recorded (q, dq, current) (M, chunk // every, n)). Carry per world: qpos, qvel,
     qacc_warmstart, fault step (first step with a joint at its limit, beyond
     ``following_error`` rad of its target or faster than ``overspeed`` rad/s), the reduction's
@@ -379,4 +384,6 @@ def _build(
             acc = reduce(f, acc, xs, q, dq, cur, (times >= 0) & (offsets < n_valid))
         return (*state, acc), tuple(jnp.swapaxes(a, 0, 1)[rows] for a in (q, dq, cur))
 
-    return sim._ahead_of_time(chunk_fn, carry_arg=1)
+    # fields, carry and the recorded worlds (each device's own, ``device_rows``): per world
+    specs = (WORLDS, WORLDS, SHARED, SHARED, SHARED, SHARED, WORLDS, SHARED, SHARED)
+    return sim._ahead_of_time(chunk_fn, 1, specs, WORLDS)

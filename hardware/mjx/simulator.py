@@ -14,6 +14,7 @@ import time
 from collections.abc import Callable, Hashable, Sequence
 from contextlib import AbstractContextManager
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -29,6 +30,7 @@ from jaxcomp.hardware.mjx import closed_loop, runner
 from jaxcomp.hardware.mjx.chunks import PyTree
 from jaxcomp.hardware.mjx.closed_loop import ClosedLoopResult, Policy, PushSchedule
 from jaxcomp.hardware.mjx.gains import servo_gains
+from jaxcomp.hardware.mjx.mesh import partitioner, per_device
 from jaxcomp.hardware.mjx.model import (
     MIN_FRICTION_LOSS,
     PAYLOAD_BODY,
@@ -334,17 +336,20 @@ class MjxSimulator:
             self._compiled[key] = build()
         return self._compiled[key]
 
-    def _ahead_of_time(self, fn: Callable, carry_arg: int) -> Callable:
-        """``fn`` jitted (argument ``carry_arg``, the carry, donated on accelerators) and
+    def _ahead_of_time(
+        self, fn: Callable, carry_arg: int, in_specs: Any, out_specs: Any
+    ) -> Callable:
+        """``fn`` run on every device's worlds (``mesh.per_device`` with these specs; on a
+        mesh), jitted (argument ``carry_arg``, the carry, donated on accelerators) and
         compiled ahead of time on its first call's shapes, timed into ``compile_seconds``."""
         donate = () if self.backend == "cpu" else (carry_arg,)
-        jitted = jax.jit(fn, donate_argnums=donate)
+        jitted = jax.jit(per_device(fn, self.mesh, in_specs, out_specs), donate_argnums=donate)
         compiled: list[Callable] = []
 
         def call(*args):
             if not compiled:  # compile ahead of time on the first call's shapes, timed
                 t0 = time.perf_counter()
-                with self._precision():
+                with self._precision(), partitioner(self.mesh):
                     compiled.append(jitted.lower(*args).compile())
                 self.compile_seconds += time.perf_counter() - t0
             return compiled[0](*args)

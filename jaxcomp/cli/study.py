@@ -29,8 +29,8 @@ def scale_options(command: Callable) -> Callable:
             type=int,
             default=None,
             help="Worlds per chunk: the study runs chunk by chunk, each finished chunk saved in "
-            "DIR/chunks until the report is written. Default: 4096 (the whole study when it has "
-            "fewer).",
+            "DIR/chunks until the report is written. Default: 4096 per device (the whole study "
+            "when it has fewer; with --resume, the interrupted study's).",
         ),
         click.option(
             "--resume",

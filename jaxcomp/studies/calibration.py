@@ -92,6 +92,7 @@ from jaxcomp.studies.plan_signal import (
 from jaxcomp.studies.processes import ONE_PROCESS, Processes, together
 from jaxcomp.studies.setup import MODEL, simulator
 from jaxcomp.studies.study_chunks import (
+    CHUNK_WORLDS_PER_DEVICE,
     CHUNKS_DIR,
     Chunk,
     ChunkStore,
@@ -133,8 +134,6 @@ FIGURES = ("errors.png", "coverage.png")
 FORMAT = "jaxcomp-study-calibration"
 #: m: the least COM prior of a study (its truths may have no COM offset at all).
 MIN_COM_PRIOR = 1e-4
-#: Worlds per chunk by default: a few thousand fill an accelerator (and its memory) well.
-DEFAULT_CHUNK_WORLDS = 4096
 #: Worlds per batch of the gravity-current errors at most (``gravity_current_error_batch``).
 GRAVITY_BATCH = 256
 #: The folder of the kept worlds' recordings (``keep_samples``) in the output folder.
@@ -166,8 +165,8 @@ class CalibrationSettings:
         com_prior: m, the JAX fit's COM prior on every link (None: the spread the truths are
             drawn from, ``study_com_prior``: the fit is told the population it is tested on;
             ``jaxcomp fit`` has the model's default, ``fit_model``).
-        chunk_worlds: worlds per chunk (``study_chunks``; None: ``DEFAULT_CHUNK_WORLDS``, the
-            whole study when it has fewer).
+        chunk_worlds: worlds per chunk (``study_chunks``; None: ``CHUNK_WORLDS_PER_DEVICE`` per
+            device, the whole study when it has fewer; a resumed study keeps its own).
         keep_samples: the recorded samples of the first K worlds are saved (``run_study``).
     """
 
@@ -338,7 +337,7 @@ def _setup(settings: CalibrationSettings, robot: Robot | None) -> _Study:
     sim = simulator(settings.devices, robot)
     model = fit_model(robot, settings.com_prior or study_com_prior(settings.spread))
     backend = jax.default_backend()
-    chunk = min(settings.chunk_worlds or DEFAULT_CHUNK_WORLDS, settings.worlds)
+    chunk = min(settings.chunk_worlds or CHUNK_WORLDS_PER_DEVICE * sim.mesh.size, settings.worlds)
     sample = baseline_worlds([gr.rows for gr in groups], settings.baseline_sample)
     return _Study(
         settings,
@@ -510,9 +509,11 @@ def run_study(
     t_all = time.perf_counter()
     if folder is None and (settings.keep_samples or processes.count > 1 or resume):
         raise InputError("--keep-samples, --resume and --distributed need an output folder")
+    store = None if folder is None else ChunkStore(Path(folder) / CHUNKS_DIR)
+    if resume and store is not None and settings.chunk_worlds is None:  # on any device count
+        settings = dataclasses.replace(settings, chunk_worlds=store.earlier("chunk_worlds"))
     study = together(processes, lambda: _setup(settings, robot), "to set the study up")
     chunks = study_chunks([gr.rows for gr in study.groups], study.chunk_worlds)
-    store = None if folder is None else ChunkStore(Path(folder) / CHUNKS_DIR)
     setup_s = time.perf_counter() - t_all
 
     def compute(chunk: Chunk) -> dict:

@@ -63,6 +63,7 @@ from jaxcomp.studies.control_policy import (
 from jaxcomp.studies.processes import ONE_PROCESS, Processes, together
 from jaxcomp.studies.setup import MODEL, simulator
 from jaxcomp.studies.study_chunks import (
+    CHUNK_WORLDS_PER_DEVICE,
     CHUNKS_DIR,
     ChunkStore,
     into_folder,
@@ -253,7 +254,8 @@ class ControlSettings:
             compensation and nominal COM instead (``draw_worlds``).
         noise: A, current noise. push: push directions, "horizontal" or "sphere".
         devices: shard over the first N devices (None: all). chunk_worlds: worlds per
-            closed-loop run (``study_chunks``; None: ``CHUNK_WORLDS``).
+            closed-loop run (``study_chunks``; None: ``CHUNK_WORLDS_PER_DEVICE`` per device; a
+            resumed study keeps its own).
     """
 
     worlds: int = 64
@@ -271,8 +273,6 @@ class ControlSettings:
     chunk_worlds: int | None = None
 
 
-#: Worlds per closed-loop run by default: an H100 runs 4096 worlds of the study at full speed.
-CHUNK_WORLDS = 4096
 #: The per-world arrays of a chunk (``chunk_results``; ``fault_code``: ``FAULT_*`` bits).
 WORLD_ARRAYS = ("tracking_rms_m", "tracking_max_m", "compliance_ratio", "static_offset_xyz_m",
                 "push_direction", "faulted", "fault_time_s", "fault_code", "ratio_error",
@@ -315,9 +315,6 @@ def _setup(settings: ControlSettings, robot: Robot | None) -> _Study:
             raise InputError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
     if settings.params_error >= 1:
         raise InputError(f"--params-error must be < 1 (relative), got {settings.params_error}")
-    chunk = CHUNK_WORLDS if settings.chunk_worlds is None else settings.chunk_worlds
-    study_chunks([range(worlds)], chunk)  # --chunk-worlds checked
-    settings = dataclasses.replace(settings, chunk_worlds=chunk)
     robot = load_robot(MODEL) if robot is None else robot
     preset = settings.gains if isinstance(settings.gains, str) else None
     gains = settings.gains if preset is None else impedance_gains(robot, preset)
@@ -332,6 +329,9 @@ def _setup(settings: ControlSettings, robot: Robot | None) -> _Study:
     reference = reference_rows(trajectory, start, steps, windows)
     policy = impedance_policy(robot, gains)
     sim = simulator(settings.devices, robot)
+    chunk = settings.chunk_worlds or CHUNK_WORLDS_PER_DEVICE * sim.mesh.size
+    study_chunks([range(worlds)], chunk)  # --chunk-worlds checked
+    settings = dataclasses.replace(settings, chunk_worlds=chunk)
     return _Study(settings, robot, gains, duration, steps, trajectory, reference, policy, sim)
 
 
@@ -408,9 +408,11 @@ def run_study(
     t_begin = time.perf_counter()
     if folder is None and (processes.count > 1 or resume):
         raise InputError("--resume and --distributed need an output folder")
+    store = None if folder is None else ChunkStore(Path(folder) / CHUNKS_DIR)
+    if resume and store is not None and settings.chunk_worlds is None:  # on any device count
+        settings = dataclasses.replace(settings, chunk_worlds=store.earlier("chunk_worlds"))
     study = together(processes, lambda: _setup(settings, robot), "to set the study up")
     chunks = study_chunks([range(int(settings.worlds))], study.settings.chunk_worlds)
-    store = None if folder is None else ChunkStore(Path(folder) / CHUNKS_DIR)
     parts = run_chunks(
         processes, chunks, store, lambda chunk: chunk_results(study, chunk.rows, progress),
         settings=study.run_settings(), resume=resume, progress=progress,

@@ -33,6 +33,9 @@ from jaxcomp.studies.processes import Processes, together
 
 #: The folder of the chunk files inside a study's output folder.
 CHUNKS_DIR = "chunks"
+#: Worlds per chunk and device when the chunk size is not given: a few thousand fill an
+#: accelerator (and its memory) well; on several devices each gets as many.
+CHUNK_WORLDS_PER_DEVICE = 4096
 #: The settings the chunk files belong to, in ``CHUNKS_DIR``.
 SETTINGS_FILE = "settings.json"
 
@@ -115,6 +118,11 @@ class ChunkStore:
             self.folder.mkdir(parents=True, exist_ok=True)
         write_json_atomic(stored, now)
         return 0
+
+    def earlier(self, name: str) -> Any:
+        """Setting ``name`` of the run whose chunks the folder holds (None: none stored)."""
+        stored = _read_json(self.folder / SETTINGS_FILE)
+        return stored.get(name) if isinstance(stored, dict) else None
 
     def done(self, chunk: Chunk) -> bool:
         """Whether ``chunk``'s results are on disk."""
