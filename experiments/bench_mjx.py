@@ -60,7 +60,14 @@ def main() -> None:
     ap.add_argument("--chunk", type=int, default=None, help="steps per compiled call")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
-        "--no-keep", action="store_true", help="stream the recording instead of keeping it"
+        "--no-keep",
+        action="store_true",
+        help="keep no recording: the samples stay on the device (with --stream: streamed)",
+    )
+    ap.add_argument(
+        "--stream",
+        action="store_true",
+        help="copy each chunk's samples to the host (and drop them there), as a consumer would",
     )
     ap.add_argument("--json", help="also write the figures to this JSON file")
     args = ap.parse_args()
@@ -84,12 +91,22 @@ def main() -> None:
     print(f"mesh: {'none' if mesh is None else dict(mesh.shape)}, dtype: {args.dtype}")
     rec_bytes = 3 * w * -(-len(q_ref) // args.every) * n * np.dtype(args.dtype).itemsize
     print(f"worlds: {w}, plan steps: {len(q_ref)}, settle steps: {args.settle}")
-    print(f"recorded: {rec_bytes / 2**30:.2f} GiB (q, dq, current every {args.every} samples)")
+    to_host = not args.no_keep or args.stream
+    print(
+        f"recorded: {rec_bytes / 2**30:.2f} GiB (q, dq, current every {args.every} samples), "
+        f"{'copied to the host' if to_host else 'left on the device'}"
+    )
 
     def timed() -> float:
         t0 = time.perf_counter()
         sim.run(
-            truth, q_ref, start, settle_steps=args.settle, every=args.every, keep=not args.no_keep
+            truth,
+            q_ref,
+            start,
+            settle_steps=args.settle,
+            every=args.every,
+            keep=not args.no_keep,
+            on_chunk=(lambda first, rec: None) if args.stream else None,
         )
         return time.perf_counter() - t0
 
@@ -115,6 +132,7 @@ def main() -> None:
             "worlds": w,
             "plan_steps": len(q_ref),
             "every": args.every,
+            "samples_to_host": to_host,
             "compile_s": sim.compile_seconds,
             "world_steps_per_s": steps / stepping,
             "world_steps_per_s_in_all": steps / wall,

@@ -226,11 +226,16 @@ def test_tracking_and_a_gain_from_the_page_take_effect(console):
 
 def test_stop_leaves_the_arm_in_position_mode(console):
     page, operator, sim = console
+    if operator.job != "run":  # alone, or on a fresh console (a worker may run tests between)
+        page.get_by_role("button", name="Start").click()
+        _wait(lambda: operator.job == "run" and sim.arm.modes[0] is ControlMode.CURRENT,
+              what="run")  # fmt: skip
     page.get_by_role("button", name="Stop").click()
     _wait(lambda: operator.job is None, what="the run to stop")
     assert all(m is ControlMode.POSITION for m in sim.arm.modes)
     np.testing.assert_array_equal(sim._limiter._cmd, 0.0)  # the base told to stop
     page.get_by_text("stopped").first.wait_for(timeout=10_000)
     page.get_by_text("arm: position").first.wait_for(timeout=10_000)
+    assert operator.last_result is not None, f"the run ended in an error: {operator.last_error}"
     kind = operator.last_result.kind
     assert kind == "stopped", operator.last_result.reason

@@ -31,14 +31,18 @@ GAINS = ImpedanceGains.tracking()
 K = GAINS.stiffness[0]  # N/m: F / K = 25 mm, inside the 0.1 m error clip
 
 
-@pytest.fixture(scope="module")
+# one worker computes the fixtures, once (session: never torn down between its tests)
+pytestmark = pytest.mark.xdist_group("control-behaviour")
+
+
+@pytest.fixture(scope="session")
 def identified(sim_calibration):
     """(params the joint fit identifies, the calibrated truth)."""
     clean, truth = sim_calibration
     return jax_fit.fit(with_noise(clean, 0.05, seed=0)), truth
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def controller(identified):
     ctrl = make_impedance_controller(ARM, identified[0], GAINS)
     ctrl.compile()

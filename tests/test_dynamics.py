@@ -96,7 +96,11 @@ CASES = {
 }
 
 
-@pytest.fixture(scope="module", params=list(CASES))
+# one worker computes each case, once (session: never torn down between its tests)
+pytestmark = pytest.mark.xdist_group("dynamics")
+
+
+@pytest.fixture(scope="session", params=list(CASES))
 def case(request) -> Case:
     return CASES[request.param]()
 

@@ -123,7 +123,7 @@ def test_servo_gains_are_the_cpu_simulators():
 
 
 # ----------------------------------------------------------------------------- one MJX run
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # session: never torn down between a worker's tests
 def batch():
     """4 worlds through one plan: 0 = the CPU test truth, 1 = the same with current noise,
     2 = friction-free with a 0.6 kg payload, 3 = friction-free on a base tilted 20 deg."""

@@ -53,12 +53,12 @@ TIMING = ("timing_s", "throughput")  # the only keys a rerun may change
 TINY_STUDY = pytest.mark.xdist_group("tiny-study")
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # session: never torn down between a worker's tests
 def robot():
     return jaxcomp.load_robot("gen3_lite")
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def tiny_plan(robot, tmp_path_factory):
     """Joints 1-4 of the short plan over +-25 deg (joint 1 from -20 deg): a 14 s plan file."""
     short = sc.short_plan(robot, speed=math.radians(60), move_speed=math.radians(90))
@@ -82,7 +82,7 @@ def _run(out: Path, plan: str, seed: int = SEED, *extra: str):
     return report, arrays, result.output
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def study(robot, tiny_plan, tmp_path_factory):
     """The tiny study from the CLI (on the module's robot: ``load_robot`` returns the robot in
     use, whose simulator the other runs here share)."""

@@ -51,7 +51,7 @@ def _com_offsets(params) -> np.ndarray:
     return off
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # session: never torn down between a worker's tests
 def agreement(tmp_path_factory):
     """One truth (seed 11, paper friction, no noise) under four controllers: 0 = params 2-3 %
     off, 1 = exact params and a 7.8 N push from 50.5 ms to 250.5 ms, 2 = joint 1's ratio 3x

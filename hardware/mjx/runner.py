@@ -162,6 +162,8 @@ def run(
     rows = np.arange(w) if record is None else np.asarray(record, np.int64).reshape(-1)
     if ((rows < 0) | (rows >= w)).any():
         raise InputError(f"record must hold world indices in [0, {w})")
+    if not keep and on_chunk is None:  # nobody reads the samples: none leave the device
+        rows = rows[:0]
     fields["key"] = sim._world_keys(seed, ids)[pad]
     fields["group"] = group.astype(np.int32)[pad]
     q0 = q0[pad]

@@ -213,8 +213,9 @@ class MjxSimulator:
         (nor, with the steps of one plan as ``noise_step``, on where a job runs).
         ``progress(steps_done, steps_total)`` after each chunk;
         ``on_chunk(first_sample, recording_of_the_chunk)`` streams samples; ``keep=False``
-        returns q, dq, current as None (bounded host memory). ``record``: only these worlds'
-        samples leave the device (default all; q, dq, current then have M = len(record) rows).
+        returns q, dq, current as None (bounded host memory; without ``on_chunk`` no sample
+        leaves the device). ``record``: only these worlds' samples leave the device (default
+        all; q, dq, current then have M = len(record) rows).
         ``reduce``: a ``runner.Reduction`` of every world's samples on the device, its final
         carry returned as ``reduced``. ``phase`` (T, G) of ``runner.PLAN`` (default),
         ``SETTLE`` (faults not counted) or ``RESTART`` (the world set at rest at its reference,

@@ -86,7 +86,8 @@ class Operator:
         self.closing = threading.Event()
         self.job: str | None = None  # "run", "calibration" while one is active
         self.params_name = "nominal" if controller.params.method == "nominal" else "given"
-        self.last_result = None
+        self.last_result = None  # the last run's RunResult
+        self.last_error: str | None = None  # the last job's error, as the page shows it
         self.fitting = False
 
     def serve(
@@ -239,7 +240,8 @@ class Operator:
                 else:
                     self._calibration(*job[1:])
             except JaxcompError as exc:
-                self.status(error=str(exc))
+                self.last_error = str(exc)
+                self.status(error=self.last_error)
             finally:
                 self.job = None
 
