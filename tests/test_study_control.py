@@ -272,6 +272,7 @@ def test_study_cli_exact_params_faults_and_reproduces(tmp_path):
         (["--com-error", "nan"], "--com-error must be >= 0"),
         (["--duration", "0"], "--duration must be > 0"),
         (["--passes", "0"], "--passes must be >= 1"),
+        (["--chunk-worlds", "0"], "--chunk-worlds must be an integer >= 1"),
     ],
 )
 def test_study_cli_refuses_bad_input(args, message, tmp_path):

@@ -329,7 +329,9 @@ def _setup(settings: ControlSettings, robot: Robot | None) -> _Study:
     reference = reference_rows(trajectory, start, steps, windows)
     policy = impedance_policy(robot, gains)
     sim = simulator(settings.devices, robot)
-    chunk = settings.chunk_worlds or CHUNK_WORLDS_PER_DEVICE * sim.mesh.size
+    chunk = settings.chunk_worlds
+    if chunk is None:
+        chunk = CHUNK_WORLDS_PER_DEVICE * sim.mesh.size
     study_chunks([range(worlds)], chunk)  # --chunk-worlds checked
     settings = dataclasses.replace(settings, chunk_worlds=chunk)
     return _Study(settings, robot, gains, duration, steps, trajectory, reference, policy, sim)
