@@ -112,6 +112,25 @@ def test_batch_truth_from_truths_and_arrays():
         BatchTruth.from_arrays(robot, t.ratio, np.ones(4))
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_device_rows_find_each_recorded_world_on_its_device(seed):
+    """Random recorded worlds of a batch split over 1-4 devices: each world's local index on
+    its device and its place in the devices' stacked outputs lead back to it, in order."""
+    from jaxcomp.hardware.mjx.mesh import device_rows
+
+    rng = np.random.default_rng(seed)
+    d = int(rng.integers(1, 5))
+    worlds = d * int(rng.integers(1, 9))
+    rows = rng.choice(worlds, int(rng.integers(0, worlds + 1)), replace=False)
+    local, where = device_rows(rows, worlds, d, 4)
+    m = local.size // d
+    assert local.size == d * m and m % 4 == 0 and m >= 4
+    per = worlds // d
+    back = local[where] + (where // m) * per  # device k's block starts at world k per
+    np.testing.assert_array_equal(back, rows)
+    assert ((local >= 0) & (local < per)).all() and len(set(where)) == rows.size
+
+
 def test_servo_gains_are_the_cpu_simulators():
     truth = _cpu_truth()
     sim = Simulator("gen3_lite", truth=truth)

@@ -59,8 +59,8 @@ def placement(mesh: Mesh | None) -> tuple[Put, Put]:
     mesh, else both on the default device."""
     if mesh is None:
         return jax.device_put, jax.device_put
-    world = NamedSharding(mesh, P("batch"))
-    shared = NamedSharding(mesh, P())
+    world = NamedSharding(mesh, WORLDS)
+    shared = NamedSharding(mesh, SHARED)
     return (lambda x: jax.device_put(x, world)), (lambda x: jax.device_put(x, shared))
 
 
@@ -83,16 +83,16 @@ def partitioner(mesh: Mesh | None) -> AbstractContextManager:
 
 
 def device_rows(
-    rows: np.ndarray, worlds: int, mesh: Mesh | None, bucket: int
+    rows: np.ndarray, worlds: int, d: int, bucket: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The worlds ``rows`` (indices into ``worlds`` padded worlds, ``world_padding``) as each
-    device's own: (local, where). ``local`` (D m,): device d's m indices into its worlds (its
-    block from d m; m the most any device holds, rounded up to a multiple of ``bucket``, at
-    least one; the rest 0), a ``WORLDS`` argument; a chunk function's per-world outputs picked
-    at them come back stacked (D m, ...), and ``where`` (len(rows),) says where each of
-    ``rows`` is in that stack."""
+    """The worlds ``rows`` (indices into ``worlds`` padded worlds, ``world_padding``, split
+    in equal blocks over ``d`` devices) as each device's own: (local, where). ``local``
+    (d m,): device k's m indices into its own worlds at [k m, (k + 1) m) (m: the most any
+    device holds, rounded up to a multiple of ``bucket``, at least ``bucket``; the rest 0), a
+    ``WORLDS`` argument; a chunk function's per-world outputs picked at them come back
+    stacked (d m, ...), and ``where`` (len(rows),) says where each of ``rows`` is in that
+    stack."""
     rows = np.asarray(rows, np.int64)
-    d = devices(mesh)
     per = worlds // d
     owner = rows // per
     most = int(np.bincount(owner, minlength=d).max(initial=0))

@@ -188,7 +188,7 @@ def run(
     )
     # each device's recorded worlds, padded to a multiple of RECORD_BUCKET: runs recording a
     # few worlds (or none) share one compiled program
-    local_rows, where = device_rows(rows, wp, sim.mesh, RECORD_BUCKET)
+    local_rows, where = device_rows(rows, wp, devices(sim.mesh), RECORD_BUCKET)
     key = ("open", wp, chunk, every, groups, limits, sim.mesh, red_key, local_rows.size)
     step = None if reduce is None else reduce.step
     fn = sim._compiled_function(key, lambda: _build(sim, chunk, every, *limits, step))
