@@ -34,6 +34,7 @@ from jaxcomp.errors import InputError, ModelError
 from jaxcomp.hardware.interaction import Interaction, Push, Rope, vec3
 from jaxcomp.hardware.interface import Arm, ArmLimits, ArmState, BaseState, ControlMode
 from jaxcomp.hardware.mecanum import TwistLimiter, TwistLimits
+from jaxcomp.hardware.servo import gain_poses, pd_gains
 from jaxcomp.hardware.truth import TrueRobot
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import BASE_JOINTS, arm_joint_indices
@@ -103,7 +104,8 @@ class Simulator:
         realtime: pace each step to the wall clock instead of lock step.
         viewer: open MuJoCo's passive viewer when a display exists (headless otherwise).
         servo_bandwidth: rad/s, natural frequency of the position servo at each joint's
-            smallest effective inertia.
+            smallest effective inertia (stiffer where a joint's gravity load asks for it:
+            ``hardware.servo``).
         following_error: rad, a servoed joint further than this from its target faults.
         overspeed: rad/s, a joint faster than this faults.
         friction_timeconst: s, solver time constant of the friction loss (default 2 x 1 ms).
@@ -219,28 +221,21 @@ class Simulator:
         return s
 
     def _gains(self, bandwidth: float) -> None:
-        """PD gains from each arm joint's effective inertia range over sampled poses.
-
-        kp = I_min w^2 keeps the explicit stiffness stable (I_min: smallest 1 / (M^-1)_jj);
-        kv = 2 sqrt(kp sqrt(I_min I_max)) damps the whole inertia range (MuJoCo integrates the
-        damping implicitly, so over-damping is harmless).
-        """
+        """The position servo's PD gains (``hardware.servo.pd_gains``) from each arm joint's
+        effective inertia range (I_min: smallest 1 / (M^-1)_jj, I_max: largest M_jj) and its
+        largest gravity torque (the model's gravity) over ``servo.gain_poses``."""
         m, d = self.model, mujoco.MjData(self.model)
-        rng = np.random.default_rng(0)
-        finite = np.isfinite(self._hard).all(axis=1)  # continuous joints: any angle
-        lo = np.where(finite, self._hard[:, 0], -np.pi)
-        hi = np.where(finite, self._hard[:, 1], np.pi)
         i_min = np.full(self.n, np.inf)
-        i_max = np.zeros(self.n)
+        i_max, load = np.zeros(self.n), np.zeros(self.n)
         full = np.zeros((m.nv, m.nv))
-        for k in range(64):
-            d.qpos[self._qadr] = np.zeros(self.n) if k == 0 else rng.uniform(lo, hi)
-            mujoco.mj_forward(m, d)
+        for pose in gain_poses(self._hard):
+            d.qpos[self._qadr] = pose
+            mujoco.mj_forward(m, d)  # at rest: qfrc_bias is the gravity torque
             mujoco.mj_fullM(m, d, full)
             i_min = np.minimum(i_min, 1.0 / np.diag(np.linalg.inv(full))[self._dadr])
             i_max = np.maximum(i_max, np.diag(full)[self._dadr])
-        self.servo_kp = i_min * bandwidth**2  # N m/rad
-        self.servo_kv = 2.0 * np.sqrt(self.servo_kp * np.sqrt(i_min * i_max))  # N m s/rad
+            load = np.maximum(load, np.abs(d.qfrc_bias[self._dadr]))
+        self.servo_kp, self.servo_kv = pd_gains(i_min, i_max, load, bandwidth)
         if self.base_joints:
             mujoco.mj_forward(m, d)
             mujoco.mj_fullM(m, d, full)

@@ -135,10 +135,51 @@ def test_servo_gains_are_the_cpu_simulators():
     truth = _cpu_truth()
     sim = Simulator("gen3_lite", truth=truth)
     bt = BatchTruth.from_truths(sim.robot, [truth, TrueRobot.draw(sim.robot, seed=9)])
-    kp, kv = servo_gains(sim.robot, true_inertial_params(sim.robot, bt))
+    kp, kv = servo_gains(sim.robot, true_inertial_params(sim.robot, bt), bt.gravity)
     np.testing.assert_allclose(kp[0], sim.servo_kp, rtol=1e-12)
     np.testing.assert_allclose(kv[0], sim.servo_kv, rtol=1e-12)
     assert np.abs(kp[1] / kp[0] - 1).max() > 1e-4  # each world's own inertia
+
+
+def test_servo_holds_a_heavily_loaded_roll_joint(tmp_path):
+    """A generated arm whose roll joint 3 carries a bent wrist (I_min ~1.6e-4 kg m^2, up to
+    ~2.7 N m of gravity): I_min w^2 alone would let it sag ~66 mrad (and fault a plan's
+    following-error check); the servo is stiffened to hold its largest gravity load within
+    HOLD_SAG, the same on the CPU Simulator and in the MJX worlds, and the CPU Simulator holds
+    the worst of its gain poses within it."""
+    from odd_arms import serial_arm
+
+    from jaxcomp.hardware.mjx.gains import servo_sizing
+    from jaxcomp.hardware.servo import HOLD_SAG, gain_poses, pd_gains
+    from jaxcomp.robot import load_robot
+    from jaxcomp.robot_params import arm_joint_indices
+
+    path = tmp_path / "bent_wrist.xml"
+    path.write_text(serial_arm(33, n=7, scale=0.9, continuous=(0,), gripper=True))
+    robot = load_robot(path)
+    truth = TrueRobot.draw(robot, seed=5)
+    bt = BatchTruth.from_truths(robot, [truth])
+    params = true_inertial_params(robot, bt)
+    kp, kv = servo_gains(robot, params, bt.gravity)
+    poses = gain_poses(robot.joint_limits[arm_joint_indices(robot)])
+    i_min, i_max, load = (np.asarray(a)[0] for a in servo_sizing(
+        robot.tree, params, jnp.asarray(bt.gravity), jnp.asarray(poses)))  # fmt: skip
+    soft, _ = pd_gains(i_min, i_max, np.zeros_like(load), 500.0)
+    j = int(np.argmax(load / soft))
+    assert load[j] / soft[j] > 3 * HOLD_SAG  # the inertia rule alone sags beyond the hold
+    assert load[j] / kp[0, j] == pytest.approx(HOLD_SAG, rel=1e-9)
+    stiff = kp[0] > soft * (1 + 1e-9)
+    assert stiff.sum() == 1 and stiff[j]  # only that joint's servo is stiffened
+    world = jax.tree_util.tree_map(lambda a: a[0], params)
+    pose = poses[np.argmax([abs(float(dynamics.gravity(robot.tree, q, world)[j])) for q in poses])]
+    sim = Simulator(robot, truth=truth, initial_pose=pose)
+    np.testing.assert_allclose(sim.servo_kp, kp[0], rtol=1e-9)
+    np.testing.assert_allclose(sim.servo_kv, kv[0], rtol=1e-9)
+    for _ in range(500):  # 0.5 s of holding the pose
+        state = sim.arm.cycle(ArmCommand(position=pose))
+    sag = abs(state.q[j] - pose[j])
+    friction = truth.friction_torque[j]
+    assert (load[j] - friction) / kp[0, j] - 2e-3 < sag <= HOLD_SAG, sag  # what the servo gives
 
 
 # ----------------------------------------------------------------------------- one MJX run
@@ -245,7 +286,7 @@ def test_payload_and_mounting_follow_the_true_dynamics(batch):
     GRIPPER_FRAME / the tilted gravity, plus the servo's implicit damping, to 1e-6 N m."""
     rec, bt, robot = batch["rec"], batch["truth"], batch["cpu"].robot
     params = true_inertial_params(robot, bt)
-    kp, kv = servo_gains(robot, params)
+    kp, kv = servo_gains(robot, params, bt.gravity)
     for w in (2, 3):
         pw = jax.tree_util.tree_map(lambda a, w=w: a[w], params)
         res = _residual(robot, rec, w, pw, bt.gravity[w], kv[w], bt.ratio[w])

@@ -144,7 +144,10 @@ class MjxSimulator:
         if truth.payload.any() and not self.payload:
             raise InputError("truth has a payload: build the MjxSimulator with payload=True")
         kp, kv = servo_gains(
-            self.robot, true_inertial_params(self.robot, truth), self.servo_bandwidth
+            self.robot,
+            true_inertial_params(self.robot, truth),
+            truth.gravity,
+            self.servo_bandwidth,
         )
         ipos = np.broadcast_to(m.body_ipos, (w,) + m.body_ipos.shape).copy()
         ipos[:, self._body_ids] += truth.com_offset
