@@ -26,7 +26,7 @@ from jaxcomp.identify.recorder import record
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--viscous", type=float, default=0.01, help="N m s/rad, every joint")
     parser.add_argument("--poses", type=int, default=5000)

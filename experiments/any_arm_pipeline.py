@@ -96,7 +96,7 @@ def run_arm(model: str, where: Path, plan: str, duration: float) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--plan", default="default", help="calibration plan: default | short")
     parser.add_argument("--duration", type=float, default=12.0, help="tracking run, s")
     parser.add_argument("--jobs", type=int, default=max(1, (os.cpu_count() or 2) // 2))

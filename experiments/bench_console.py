@@ -155,7 +155,7 @@ def show(name: str, r: dict) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--rt-priority", type=int, default=50, help="SCHED_FIFO priority; 0: off")

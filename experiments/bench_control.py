@@ -85,7 +85,7 @@ def latency(variants: dict, repeats: int, block: int) -> dict:
 
 
 def main() -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=20000, help="calls timed per variant")
     parser.add_argument("--block", type=int, default=1000, help="calls per interleaved block")
     parser.add_argument("--json", help="also write the figures to this JSON file")

@@ -66,7 +66,7 @@ def compiled(fn, *args):
 
 
 def main() -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=20000, help="calls timed per variant")
     parser.add_argument("--poses", type=int, default=100_000, help="poses for the vmap figure")
     parser.add_argument(

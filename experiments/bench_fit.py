@@ -26,7 +26,7 @@ import platform
 import time
 from contextlib import contextmanager, nullcontext
 
-_ARGS = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+_ARGS = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 _ARGS.add_argument("--count", type=int, default=1000, help="recordings for the batch test")
 _ARGS.add_argument("--scipy-count", type=int, default=20, help="recordings the baseline loops")
 _ARGS.add_argument("--pool", type=int, default=64, help="distinct noisy recordings to cycle")

@@ -38,7 +38,7 @@ def _run(args: list[str], env: dict) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--count", type=int, default=32)
     args = parser.parse_args()
     robot = load_robot("gen3_lite")

@@ -94,7 +94,7 @@ def recordings(robot, truth, signal, every: int, block: int, seed: int):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--count", type=int, default=4096, help="recordings")
     ap.add_argument("--batch", type=int, default=None, help="fits per vmapped batch")
     ap.add_argument("--plan", default="default", help="default, short or a plan JSON file")

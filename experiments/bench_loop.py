@@ -418,7 +418,7 @@ def load() -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=3, help="lock-step runs per scenario")
     parser.add_argument("--no-lockstep", action="store_true", help="skip the lock-step part")
     parser.add_argument("--realtime", type=float, default=0.0, help="s of real-time run (60)")

@@ -50,7 +50,7 @@ def sweep_plan(robot, steps: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--worlds", type=int, default=4)
     ap.add_argument("--steps", type=int, default=200, help="plan steps (1 ms each)")
     ap.add_argument("--settle", type=int, default=500, help="settling steps before the plan")

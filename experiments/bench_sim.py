@@ -104,7 +104,7 @@ def main(seconds: float = 10.0, repeats: int = 3) -> dict:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=10.0, help="robot seconds per run")
     parser.add_argument("--repeats", type=int, default=3, help="runs of each workload")
     parser.add_argument("--json", help="also write the figures to this JSON file")

@@ -26,7 +26,7 @@ from jaxcomp.control.timing import configure_jax_for_control, realtime_priority 
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="docs/console.png")
     ap.add_argument("--push", default="0,8,6", help="N, world frame")
     ap.add_argument("--width", type=int, default=1500)

@@ -97,7 +97,7 @@ def push_run(controller, scenario: str, force: np.ndarray) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--identified", action="store_true", help="params of a simulated fit")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()

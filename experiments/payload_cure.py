@@ -64,7 +64,7 @@ def _summary(p: RobotParams, truth: RobotParams) -> tuple[np.ndarray, ...]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--arms", nargs="+", default=["gen3_lite", "wx250s", "gen3"])
     parser.add_argument("--reps", type=int, default=12)
     args = parser.parse_args()

@@ -20,7 +20,7 @@ from jaxcomp.studies import calibration as sc
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--worlds", type=int, default=1024)
     parser.add_argument("--plan", default="default")
     parser.add_argument("--baseline-sample", type=int, default=0)
