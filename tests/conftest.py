@@ -35,6 +35,27 @@ def pytest_configure(config):
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
+#: Modules whose tests take a minute or more each (whole studies, MJX compiles, subprocesses):
+#: collected first, so that the two CI workers start on them and finish on the short tests
+#: instead of one worker running a long test alone at the end.
+LONG_FIRST = (
+    "test_study_calibration",
+    "test_study_control",
+    "test_mjx_sim",
+    "test_pipeline_any_arm",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Long modules first (``LONG_FIRST``, in that order), the rest as collected."""
+
+    def rank(item) -> int:
+        name = item.path.stem
+        return LONG_FIRST.index(name) if name in LONG_FIRST else len(LONG_FIRST)
+
+    items.sort(key=rank)  # stable: each module keeps its own order
+
+
 def pytest_unconfigure(config):
     where = getattr(config, "_jaxcomp_cache", None)
     if where is not None:

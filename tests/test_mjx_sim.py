@@ -149,7 +149,7 @@ def test_servo_holds_a_heavily_loaded_roll_joint(tmp_path):
     the worst of its gain poses within it."""
     from odd_arms import serial_arm
 
-    from jaxcomp.hardware.mjx.gains import servo_sizing
+    from jaxcomp.hardware.mjx.gains import servo_loads
     from jaxcomp.hardware.servo import HOLD_SAG, gain_poses, pd_gains
     from jaxcomp.robot import load_robot
     from jaxcomp.robot_params import arm_joint_indices
@@ -162,8 +162,7 @@ def test_servo_holds_a_heavily_loaded_roll_joint(tmp_path):
     params = true_inertial_params(robot, bt)
     kp, kv = servo_gains(robot, params, bt.gravity)
     poses = gain_poses(robot.joint_limits[arm_joint_indices(robot)])
-    i_min, i_max, load = (np.asarray(a)[0] for a in servo_sizing(
-        robot.tree, params, jnp.asarray(bt.gravity), jnp.asarray(poses)))  # fmt: skip
+    i_min, i_max, load = (a[0] for a in servo_loads(robot, params, bt.gravity))
     soft, _ = pd_gains(i_min, i_max, np.zeros_like(load), 500.0)
     j = int(np.argmax(load / soft))
     assert load[j] / soft[j] > 3 * HOLD_SAG  # the inertia rule alone sags beyond the hold
@@ -171,7 +170,8 @@ def test_servo_holds_a_heavily_loaded_roll_joint(tmp_path):
     stiff = kp[0] > soft * (1 + 1e-9)
     assert stiff.sum() == 1 and stiff[j]  # only that joint's servo is stiffened
     world = jax.tree_util.tree_map(lambda a: a[0], params)
-    pose = poses[np.argmax([abs(float(dynamics.gravity(robot.tree, q, world)[j])) for q in poses])]
+    grav = jax.jit(jax.vmap(lambda q: dynamics.gravity(robot.tree, q, world)))(poses)
+    pose = poses[np.argmax(np.abs(np.asarray(grav)[:, j]))]
     sim = Simulator(robot, truth=truth, initial_pose=pose)
     np.testing.assert_allclose(sim.servo_kp, kp[0], rtol=1e-9)
     np.testing.assert_allclose(sim.servo_kv, kv[0], rtol=1e-9)

@@ -41,12 +41,12 @@ def servo_sizing(
     return jax.vmap(world)(params, gravity)
 
 
-def servo_gains(
-    robot: Robot, params: InertialParams, gravity: np.ndarray, bandwidth: float = 500.0
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per-world position-servo gains (kp, kv) (W, n) as ``Simulator._gains`` computes them
-    (``hardware.servo``). ``params``: (W, ...) inertial params; ``gravity`` (W, 3) m/s^2, each
-    world's; ``bandwidth`` rad/s."""
+def servo_loads(
+    robot: Robot, params: InertialParams, gravity: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-world (I_min, I_max, largest gravity load) (W, n) over ``servo.gain_poses``
+    (``servo_sizing``, batched and compiled once per robot). ``params``: (W, ...) inertial
+    params; ``gravity`` (W, 3) m/s^2, each world's."""
     poses = gain_poses(robot.joint_limits[arm_joint_indices(robot)])
     tree = robot.tree
     sizing = robot.cached(
@@ -63,4 +63,12 @@ def servo_gains(
         k = min(b, w - s)
         for out, value in zip((i_min, i_max, load), got, strict=True):
             out[s : s + k] = np.asarray(value)[:k]
-    return pd_gains(i_min, i_max, load, bandwidth)
+    return i_min, i_max, load
+
+
+def servo_gains(
+    robot: Robot, params: InertialParams, gravity: np.ndarray, bandwidth: float = 500.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-world position-servo gains (kp, kv) (W, n) as ``Simulator._gains`` computes them
+    (``hardware.servo.pd_gains`` of ``servo_loads``); ``bandwidth`` rad/s."""
+    return pd_gains(*servo_loads(robot, params, gravity), bandwidth)
