@@ -35,17 +35,13 @@ def pytest_configure(config):
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
-#: Modules whose tests take a minute or more each (whole studies, MJX compiles, subprocesses),
-#: or that one worker runs whole (``xdist_group``: minutes in one piece): collected first, so
-#: that the two CI workers start on them and finish on the short tests instead of one worker
-#: running a long piece alone at the end.
+#: Modules whose tests take a minute or more each (whole studies, MJX compiles, subprocesses):
+#: collected first, so that the two CI workers start on them and finish on the short tests
+#: instead of one worker running a long test alone at the end.
 LONG_FIRST = (
     "test_study_calibration",
     "test_study_control",
-    "test_dynamics",
     "test_mjx_sim",
-    "test_control_behaviour",
-    "test_console",
     "test_pipeline_any_arm",
 )
 
