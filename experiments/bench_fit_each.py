@@ -1,10 +1,11 @@
 """`jaxcomp fit --each` end to end: the joint JAX fit against the paper's scipy fit on a batch of
 recordings, as a user runs it (a fresh process each, start-up and file reading included).
 
-``--count`` recordings of the Gen3 Lite's default plan (synthetic, 1 kHz, ~233 000 samples
-each, fresh 0.05 A noise per recording) are written to a temp folder; then, side by side:
-`jaxcomp fit --each` with the JAX fit with an empty XLA cache (cold) and again with the cache
-it left (warm), and `jaxcomp fit --each --method scipy`. Printed: wall seconds of each command.
+``--count`` recordings of the Gen3 Lite's default plan (synthetic, 1 kHz, its sweeps and the
+transfers between them, fresh 0.05 A noise per recording) are written to a temp folder; then,
+side by side: `jaxcomp fit --each` with the JAX fit with an empty XLA cache (cold) and again
+with the cache it left (warm), and `jaxcomp fit --each --method scipy`. Printed: wall seconds
+of each command.
 
     python experiments/bench_fit_each.py [--count 32]
 """
@@ -50,12 +51,15 @@ def main() -> None:
         rng.uniform(0.3, 1.0, 6),
         {k: rng.uniform(-0.004, 0.004, 3) for k in ("ARM", "FOREARM", "LOWER_WRIST")},
     )
-    sweeps = synthetic.plan_sweeps(default_plan(robot))
+    plan = default_plan(robot)
+    sweeps = synthetic.plan_sweeps(plan)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         files = []
         for k in range(args.count):
-            rec = synthetic.recording(robot, truth, sweeps, noise=0.05, seed=k)
+            rec = synthetic.recording(
+                robot, truth, sweeps, noise=0.05, seed=k, transfers=plan.move_speed
+            )
             files.append(str(rec.save(folder / f"rec{k:03d}.npz")))
         samples = rec.n_samples
         env = os.environ | {"JAXCOMP_CACHE": str(folder / "xla")}

@@ -8,9 +8,12 @@ steady pass of joint j in direction d at pass velocity v (rad/s) the measured cu
 where tau is the gravity torque the actuator holds (N m) at the sample's pose q (the held
 joints to first order about the sweep's mean pose: they give way under load), r_j > 0 the
 current/torque ratio (A/(N m)), l_j the friction loss (A), b_j the viscous term (A s/rad) and
-delta the centre-of-mass offsets (m, each moving link's own frame) of every moving link. One
-least-squares loss covers all joints, all sweeps and all recordings (which may differ in
-gravity and payload), each joint with its own noise variance.
+delta the centre-of-mass offsets (m, each moving link's own frame) of every moving link. The
+transfers between sweeps add every moving joint's cruise samples with the same model, tau
+then the gravity plus the inertial, Coriolis and centrifugal torques at the sample's velocity
+and acceleration (``identify.transfers``, ``_transfer_stats``). One least-squares loss
+covers all joints, all sweeps and transfers and all recordings (which may differ in gravity
+and payload), each joint with its own noise variance.
 
 Sweep moments make it exact and independent of the sample count (``identify.moments``): each
 sweep's steady samples reduce to one small matrix; the regressors are evaluated at a few poses
@@ -53,6 +56,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 import os
 import threading
 import time
@@ -82,6 +86,13 @@ from jaxcomp.identify.moments import (
     reduce_batch,
     sweep_moments,
     z_index,
+)
+from jaxcomp.identify.transfers import (
+    TransferBins,
+    bucket,
+    padded_bins,
+    stack_bins,
+    transfer_bins,
 )
 from jaxcomp.params import gyration_radii
 from jaxcomp.plausibility import check_recordings, recording_problems
@@ -292,28 +303,141 @@ def _build_model(robot: Robot) -> FitModel:
     )
 
 
+def _offset_params(model: FitModel, payload_mass, payload_com) -> Callable:
+    """delta (K,) m -> the nominal ``InertialParams`` with every moving link's COM moved by
+    its offset in delta (the offset moves the link's own mass; the recording's payload is
+    merged in after it)."""
+    robot = model.robot
+    nominal = robot.nominal_params()
+
+    def params(delta):
+        com = nominal.com.at[model.link_ids].add(delta.reshape(-1, 3))
+        return robot.with_payload(nominal._replace(com=com), payload_mass, payload_com)
+
+    return params
+
+
+def _gravity_of(model: FitModel, gravity, payload_mass, payload_com) -> Callable:
+    """(delta (K,) m, q (n,) rad) -> (n,) N m: the current-controlled joints' gravity torque
+    at arm pose q under ``gravity`` (3,) m/s^2, the COM offsets delta applied
+    (``_offset_params``)."""
+    tree, params = model.robot.tree, _offset_params(model, payload_mass, payload_com)
+
+    def tau(delta, qa):
+        qf = jnp.zeros(tree.nv).at[model.joints].set(qa)
+        return dynamics.gravity(tree, qf, params(delta), gravity)[model.joints]
+
+    return tau
+
+
+def _coriolis_of(model: FitModel, payload_mass, payload_com) -> Callable:
+    """(delta (K,) m, q (n,) rad, dq (n,) rad/s) -> (n,) N m: the current-controlled joints'
+    Coriolis and centrifugal torque C(q, dq) dq, the COM offsets delta applied."""
+    tree, params = model.robot.tree, _offset_params(model, payload_mass, payload_com)
+
+    def tau(delta, qa, va):
+        qf = jnp.zeros(tree.nv).at[model.joints].set(qa)
+        vf = jnp.zeros(tree.nv).at[model.joints].set(va)
+        return dynamics.coriolis(tree, qf, vf, params(delta))[model.joints]
+
+    return tau
+
+
+def _inertial_of(model: FitModel, payload_mass, payload_com) -> Callable:
+    """(q (n,) rad, ddq (n,) rad/s^2) -> (n,) N m: the current-controlled joints' inertial
+    torque M(q) ddq of the nominal model with the recording's payload (the other joints at
+    rest)."""
+    tree = model.robot.tree
+    params = _offset_params(model, payload_mass, payload_com)(jnp.zeros(model.K))
+
+    def tau(qa, aa):
+        qf = jnp.zeros(tree.nv).at[model.joints].set(qa)
+        m = dynamics.mass_matrix(tree, qf, params)[model.joints][:, model.joints]
+        return m @ aa
+
+    return tau
+
+
 @partial(jax.jit, static_argnums=0)
 def _regressors(model: FitModel, q, swept, gravity, payload_mass, payload_com):
     """[tau0 (N m), d tau0 / d delta (K, N)] (B, 1 + K) of the swept joint ``swept`` (B,) at
     each arm pose ``q`` (B, n) rad, under ``gravity`` (3,) m/s^2 with the recording's
     payload."""
-    robot = model.robot
-    tree = robot.tree
-    nominal = robot.nominal_params()
-
-    def tau(delta, qa, j):
-        # the offset moves the link's own mass; a payload is merged in after it
-        com = nominal.com.at[model.link_ids].add(delta.reshape(-1, 3))
-        params = robot.with_payload(nominal._replace(com=com), payload_mass, payload_com)
-        qf = jnp.zeros(tree.nv).at[model.joints].set(qa)
-        return dynamics.gravity(tree, qf, params, gravity)[model.joints][j]
-
+    tau = _gravity_of(model, gravity, payload_mass, payload_com)
     delta0 = jnp.zeros(model.K)
 
     def one(qa, j):
-        return jnp.concatenate([tau(delta0, qa, j)[None], jax.grad(tau)(delta0, qa, j)])
+        def of(delta):
+            return tau(delta, qa)[j]
+
+        return jnp.concatenate([of(delta0)[None], jax.grad(of)(delta0)])
 
     return jax.vmap(one)(q, swept)
+
+
+#: Transfer bins whose features are formed at once (``_transfer_stats``).
+_TRANSFER_CHUNK = 64
+#: Transfer bins that share the Coriolis torque's offset Jacobian, interpolated between the
+#: block's first and last bin (a bin of another leg than both gets none): the Jacobian costs
+#: ~10 times the rest of a bin's features.
+_CORIOLIS_BLOCK = 16
+#: Bins of one leg: velocities within this fraction of the largest joint speed.
+_SAME_LEG = 0.05
+
+
+def _transfer_stats(model: FitModel, tb: TransferBins, gravity, payload_mass, payload_com) -> Stats:
+    """Sufficient statistics of one recording's transfer bins (``identify.transfers``): every
+    joint's features [tau0 = g(q) + M(q) ddq + C(q, dq) dq (N m, nominal model), d tau0 /
+    d delta (K), sign dq, dq (rad/s)] at each bin's mean pose, velocity and acceleration,
+    weighted by the samples it counts. The Coriolis torque's dependence on the COM offsets
+    counts (to first order, as gravity's; its Jacobian interpolated over ``_CORIOLIS_BLOCK``
+    bins of one leg): on a joint that gravity hardly loads it can be most of the signal. The
+    inertial torque's does not: it is a correction of a few mA, the offsets change it by ~1 %."""
+    grav = _gravity_of(model, gravity, payload_mass, payload_com)
+    cor = _coriolis_of(model, payload_mass, payload_com)
+    inertial = _inertial_of(model, payload_mass, payload_com)
+    delta0 = jnp.zeros(model.K)
+    n, F, B, G = model.n, model.K + 3, tb.count.shape[0], _CORIOLIS_BLOCK
+
+    def coriolis_jacobian(pose, velocity):  # (c, n, K), see _CORIOLIS_BLOCK
+        P, V = (jnp.reshape(a, (-1, G, n)) for a in (pose, velocity))
+        ends = jnp.stack([P[:, 0], P[:, -1]]), jnp.stack([V[:, 0], V[:, -1]])
+        J = jax.vmap(jax.vmap(lambda q, v: jax.jacrev(cor)(delta0, q, v)))(*ends)
+        top = jnp.abs(V).max(axis=(1, 2))[:, None] + 1e-300
+        at_a = jnp.abs(V - V[:, :1]).max(-1) <= _SAME_LEG * top  # (c / G, G)
+        at_z = jnp.abs(V - V[:, -1:]).max(-1) <= _SAME_LEG * top
+        t = jnp.arange(G) / (G - 1)
+        w_a = jnp.where(at_a & at_z, 1.0 - t, at_a.astype(float))
+        w_z = jnp.where(at_a & at_z, t, at_z.astype(float))
+        out = w_a[..., None, None] * J[0][:, None] + w_z[..., None, None] * J[1][:, None]
+        return out.reshape(-1, n, model.K)
+
+    def add(st: Stats, part: tuple) -> tuple[Stats, None]:
+        pose, velocity, acceleration, cur, square, count = part
+        tau0 = jax.vmap(lambda q, v, a: grav(delta0, q) + cor(delta0, q, v) + inertial(q, a))(
+            pose, velocity, acceleration
+        )
+        reg = jax.vmap(lambda q: jax.jacfwd(grav)(delta0, q))(pose)
+        reg = reg + coriolis_jacobian(pose, velocity)
+        phi = jnp.concatenate(
+            [tau0[..., None], reg, jnp.sign(velocity)[..., None], velocity[..., None]], -1
+        )  # (c, n, F)
+        return st + Stats(
+            S=jnp.einsum("bj,bjf,bjg->jfg", count, phi, phi),
+            s=jnp.einsum("bjf,bj->jf", phi, cur),
+            c2=square.sum(0),
+            samples=count.sum(0),
+        ), None
+
+    zero = Stats(jnp.zeros((n, F, F)), jnp.zeros((n, F)), jnp.zeros(n), jnp.zeros(n))
+    if B == 0:
+        return zero
+    c = math.gcd(B, _TRANSFER_CHUNK)  # bins at a time: the Jacobians of many are large
+    parts = tuple(jnp.reshape(a, (B // c, c, *a.shape[1:])) for a in tb)
+    return jax.lax.scan(add, zero, parts)[0]
+
+
+_transfer_stats_jit = jax.jit(_transfer_stats, static_argnums=0)
 
 
 #: Angles (rad) at which a degree-one trigonometric polynomial a sin + b cos + c is sampled.
@@ -683,10 +807,17 @@ def _bucket(n: int) -> int:
     return -(-n // _BUCKET) * _BUCKET
 
 
-def prepare(model: FitModel, rec: Recording) -> tuple[Stats, jax.Array, SweepMoments]:
-    """Moments, sufficient statistics and torque coefficients of one recording."""
+def prepare(
+    model: FitModel, rec: Recording, transfers: bool = True
+) -> tuple[Stats, jax.Array, SweepMoments]:
+    """Moments, sufficient statistics and torque coefficients of one recording; its transfers
+    (``identify.transfers``) added to the statistics unless ``transfers`` is False."""
     m = sweep_moments(rec)
     st, coef = _sweep_stats(model, _padded(m, _bucket(m.n_sweeps)))
+    if transfers:
+        tb = transfer_bins(rec)
+        tb = padded_bins(tb, bucket(tb.size))
+        st = st + _transfer_stats_jit(model, tb, m.gravity, m.payload_mass, m.payload_com)
     return st, coef, m
 
 
@@ -825,8 +956,11 @@ def fit(
     max_iter: int = 50,
     com_prior: float | None = None,
     complete: bool = True,
+    transfers: bool = True,
 ) -> RobotParams:
-    """Fit one parameter set to one or several recordings of one robot, jointly.
+    """Fit one parameter set to one or several recordings of one robot, jointly: their sweeps
+    and, unless ``transfers`` is False, the cruise of their transfers between sweeps
+    (``identify.transfers``).
 
     The recordings may differ in gravity (mounting) and payload. ``com_prior``: m, the COM
     prior on every link (default: the model's, ``default_com_prior``). ``complete``: refuse
@@ -840,7 +974,7 @@ def fit(
     if complete:
         check_recordings(recs)
     start = time.perf_counter()
-    prepared = [prepare(model, r) for r in recs]
+    prepared = [prepare(model, r, transfers) for r in recs]
     st = prepared[0][0]
     for other in prepared[1:]:
         st = st + other[0]
@@ -857,12 +991,13 @@ def _result(model, name, sol, coef, joint, seconds) -> RobotParams:
 
 
 @partial(jax.jit, static_argnums=(0, 2, 3))
-def _fit_packed(model: FitModel, p: Packed, length: int, sequential: bool):
-    """Stacked packed recordings (leading batch axis) -> (Solution, coef, joint, count) of
-    each: moments, statistics and fit in one computation on the device (``sequential``: the
-    moments one recording after another, see ``moments.reduce_batch``)."""
+def _fit_packed(model: FitModel, data: tuple[Packed, TransferBins], length: int, sequential: bool):
+    """Stacked packed recordings and their transfer bins (leading batch axis) -> (Solution,
+    coef, joint, count) of each: moments, statistics and fit in one computation on the device
+    (``sequential``: the moments one recording after another, see ``moments.reduce_batch``)."""
+    p, tb = data
     m = reduce_batch(p, length, STEADY_FRACTION, STEADY_TRIM, sequential)
-    sol, coef = _fit_moments.__wrapped__(model, m)
+    sol, coef = _fit_moments.__wrapped__(model, m, tb)
     return sol, coef, m.joint, m.count
 
 
@@ -900,9 +1035,11 @@ def fit_each(
     progress: bool = False,
     workers: int | None = None,
     com_prior: float | None = None,
+    transfers: bool = True,
 ) -> list[RobotParams]:
     """Fit every recording on its own, ``batch`` at a time in one vmapped computation on the
-    default backend (a GPU when present): moments, statistics and fit of a batch in one call.
+    default backend (a GPU when present): moments, statistics and fit of a batch in one call
+    (each as ``fit``, its transfers too unless ``transfers`` is False).
 
     The host reads (``recordings`` may be a generator that loads them), checks and packs a
     batch while the device fits the two before; the device's program is loaded (or traced and
@@ -937,7 +1074,7 @@ def fit_each(
             # the batch that used it is fitted (fresh memory costs a page fault per 4 kB)
             buffer = buffers.setdefault(which, PackBuffer())
         packed, length = pack(recs, buffer)
-        return jax.block_until_ready(jax.device_put(packed)), length
+        return jax.block_until_ready(jax.device_put((packed, _bins_of(recs, transfers)))), length
 
     def finish(names: list[str], result: Future, start: float) -> None:
         sols, coef, joint, count = jax.tree.map(np.asarray, result.result())
@@ -957,14 +1094,16 @@ def fit_each(
             repr((model._identity, length, not accelerated)),
             partial(_fit_packed, model, length=length, sequential=not accelerated),
             (packed,),
-            (Packed, Solution),
+            (Packed, TransferBins, Solution),
         )
 
     def load(rec: Recording) -> None:  # the program for a batch of recordings like ``rec``
         packed, length = pack([rec])
+        packed = (packed, _bins_of([rec], transfers))
         if not accelerated:  # and the pack buffers' memory, mapped ahead of the first packs
             for which in itertools.product((0, 1), range(-(-batch // group))):
-                buffers.setdefault(which, PackBuffer()).take(group, *packed.samples.shape[1:], True)
+                shape = packed[0].samples.shape[1:]
+                buffers.setdefault(which, PackBuffer()).take(group, *shape, True)
         like = jax.tree.map(lambda a: jax.ShapeDtypeStruct((batch, *a.shape[1:]), a.dtype), packed)
         program(like, length)
 
@@ -1011,6 +1150,15 @@ def fit_each(
     return out
 
 
+def _bins_of(recs: list[Recording], transfers: bool) -> TransferBins:
+    """The recordings' transfer bins, stacked (none with ``transfers`` False)."""
+    if not transfers:
+        return TransferBins(
+            *(np.zeros((len(recs), 0, recs[0].n_joints)) for _ in TransferBins._fields)
+        )
+    return stack_bins([transfer_bins(r) for r in recs])
+
+
 def _chunks(items: Iterable, size: int) -> Iterable[list]:
     chunk: list = []
     for item in items:
@@ -1042,14 +1190,21 @@ class BatchFit(NamedTuple):
 
 
 @partial(jax.jit, static_argnums=0)
-def _fit_moments(model: FitModel, m: SweepMoments) -> tuple[Solution, jax.Array]:
-    """Stacked moments (leading batch axis) -> (Solution, coef) of every recording."""
+def _fit_moments(model: FitModel, m: SweepMoments, tb: TransferBins) -> tuple[Solution, jax.Array]:
+    """Stacked moments and transfer bins (leading batch axis) -> (Solution, coef) of every
+    recording."""
     st, coef = jax.vmap(_sweep_stats.__wrapped__, in_axes=(None, 0))(model, m)
-    return jax.vmap(solve.__wrapped__, in_axes=(None, 0))(_key(model), st), coef
+    moving = jax.vmap(_transfer_stats, in_axes=(None, 0, 0, 0, 0))(
+        model, tb, m.gravity, m.payload_mass, m.payload_com
+    )
+    return jax.vmap(solve.__wrapped__, in_axes=(None, 0))(_key(model), st + moving), coef
 
 
 def _compiled_fit(
-    model: FitModel, chunk: SweepMoments, shape: tuple, options: dict | None = None
+    model: FitModel,
+    chunk: tuple[SweepMoments, TransferBins],
+    shape: tuple,
+    options: dict | None = None,
 ) -> tuple[Callable, float]:
     """``_fit_moments`` compiled ahead of time for ``chunk`` (so that its time is known),
     kept on the robot per model and ``shape`` = (batch, sweeps, mesh); and the seconds spent
@@ -1059,7 +1214,7 @@ def _compiled_fit(
     def build() -> Callable:
         nonlocal seconds
         t0 = time.perf_counter()
-        compiled = _fit_moments.lower(model, chunk).compile(options)
+        compiled = _fit_moments.lower(model, *chunk).compile(options)
         seconds = time.perf_counter() - t0
         return compiled
 
@@ -1068,11 +1223,12 @@ def _compiled_fit(
 
 
 def _batch_input(
-    moments: SweepMoments, batch: int, mesh: Mesh | None
-) -> tuple[SweepMoments, int, int, Callable]:
-    """``fit_batch``'s input: (the moments with their sweeps padded to the bucket size and
-    float gravity and payload, rows per batch (``batch`` rounded up to the mesh), the padded
-    sweep count, the function that places a batch on the mesh)."""
+    moments: SweepMoments, transfers: TransferBins | None, batch: int, mesh: Mesh | None
+) -> tuple[tuple[SweepMoments, TransferBins], int, tuple[int, int], Callable]:
+    """``fit_batch``'s input: ((the moments with their sweeps padded to the bucket size and
+    float gravity and payload, the transfer bins padded to theirs: none when ``transfers`` is
+    None), rows per batch (``batch`` rounded up to the mesh), the padded sweep and bin counts,
+    the function that places a batch on the mesh)."""
     shards = 1 if mesh is None else mesh.size
     b = -(-max(1, int(batch)) // shards) * shards
     size = _bucket(moments.moments.shape[1])
@@ -1082,23 +1238,32 @@ def _batch_input(
         gravity=np.asarray(padded.gravity, float),
         payload_com=np.asarray(padded.payload_com, float),
     )
+    w, n = moments.hold.shape[0], moments.hold.shape[-1]
+    if transfers is None:
+        tb = TransferBins(*(np.zeros((w, 0, n)) for _ in TransferBins._fields))
+    else:
+        tb = padded_bins(transfers, bucket(transfers.size))
     place = (
         (lambda x: x)
         if mesh is None
         else partial(jax.device_put, device=NamedSharding(mesh, PartitionSpec("batch")))
     )
-    return padded, b, size, place
+    return (padded, tb), b, (size, tb.size), place
 
 
 def compile_fit_batch(
-    model: FitModel, like: SweepMoments, batch: int, mesh: Mesh | None = None
+    model: FitModel,
+    like: SweepMoments,
+    batch: int,
+    mesh: Mesh | None = None,
+    transfers: TransferBins | None = None,
 ) -> float:
-    """Compile ``fit_batch``'s program for batches of ``batch`` recordings with moments like
-    ``like`` (stacked; any number of rows) ahead of the moments themselves, e.g. while the
-    simulation that makes them runs on the same device: without autotuning, which would
-    time its candidate kernels behind that work; the seconds spent (0 when compiled
-    before)."""
-    padded, b, size, _ = _batch_input(like, batch, mesh)
+    """Compile ``fit_batch``'s program for batches of ``batch`` recordings with moments and
+    transfer bins like ``like`` and ``transfers`` (stacked; any number of rows) ahead of the
+    data themselves, e.g. while the simulation that makes them runs on the same device:
+    without autotuning, which would time its candidate kernels behind that work; the seconds
+    spent (0 when compiled before)."""
+    padded, b, size, _ = _batch_input(like, transfers, batch, mesh)
     sharding = None if mesh is None else NamedSharding(mesh, PartitionSpec("batch"))
     shaped = jax.tree.map(
         lambda a: jax.ShapeDtypeStruct(
@@ -1113,6 +1278,7 @@ def fit_batch(
     model: FitModel,
     moments: SweepMoments,
     *,
+    transfers: TransferBins | None = None,
     batch: int | None = None,
     mesh: Mesh | None = None,
     progress: Callable[[int], None] | None = None,
@@ -1123,7 +1289,8 @@ def fit_batch(
     ``moments``: a ``SweepMoments`` with a leading axis W on every field (joint (W, S), hold
     (W, S, n), moments (W, S, 6, 6), count (W, S), gravity (W, 3), payload_mass (W,),
     payload_com (W, 3)), e.g. ``identify.moments.sweep_moments_batch``; a sweep of zero moments
-    adds nothing. ``mesh``: a ``jax.sharding.Mesh`` with the single axis "batch" to shard each
+    adds nothing. ``transfers``: the recordings' stacked ``TransferBins`` (W, B, n) (None:
+    sweeps alone). ``mesh``: a ``jax.sharding.Mesh`` with the single axis "batch" to shard each
     batch over (its devices); the batch is rounded up to a multiple of the mesh size and the
     last batch padded with copies of the last recording (dropped). The results are those of
     ``solve`` per recording; non-converged fits are reported in ``solution.converged``, not
@@ -1133,7 +1300,7 @@ def fit_batch(
     if w < 1 or moments.moments.ndim != 4:
         raise InputError("moments must be stacked: moments (W, S, 6, 6) with W >= 1")
     rows = w if batch is None else max(1, min(int(batch), w))
-    padded, b, size, place = _batch_input(moments, rows, mesh)
+    padded, b, size, place = _batch_input(moments, transfers, rows, mesh)
     compile_seconds, seconds = 0.0, 0.0
     sols, coefs = [], []
     for start in range(0, w, b):
@@ -1142,7 +1309,7 @@ def fit_batch(
         compiled, compiling = _compiled_fit(model, chunk, (b, size, mesh))
         compile_seconds += compiling
         t0 = time.perf_counter()
-        sol, coef = jax.block_until_ready(compiled(chunk))
+        sol, coef = jax.block_until_ready(compiled(*chunk))
         k = min(b, w - start)
         sols.append(jax.tree.map(lambda a, k=k: np.asarray(a)[:k], sol))
         coefs.append(np.asarray(coef)[:k])

@@ -171,7 +171,9 @@ def test_resume_records_only_the_missing_sweeps(cal, plan_file, monkeypatch, cap
     about the recording)."""
     kept = load_recording(cal / "recording.npz")
     truth = replace(TrueRobot.load(cal / "truth.json", ROBOT).params, fit_seconds=0.0)
-    monkeypatch.setattr("jaxcomp.cli.calibrate._fit", lambda recs, method, prior=None: truth)
+    monkeypatch.setattr(
+        "jaxcomp.cli.calibrate._fit", lambda recs, method, prior=None, transfers=True: truth
+    )
     monkeypatch.setattr("jaxcomp.cli.calibrate._warn", lambda params: None)
     monkeypatch.setattr("jaxcomp.identify.plots.plot_sweeps", lambda *a: None)
     args = ["calibrate", "--plan", plan_file, "--out", cal, "--resume"]
@@ -269,7 +271,9 @@ def test_a_locked_folder_is_refused_by_every_command(cal, plan_file, monkeypatch
 @needs_proc
 def test_a_full_disk_ends_in_one_error_and_keeps_the_old_file(cal, monkeypatch, capsys):
     params = TrueRobot.draw(ROBOT, 0).params
-    monkeypatch.setattr("jaxcomp.cli.calibrate._fit", lambda recs, method, prior=None: params)
+    monkeypatch.setattr(
+        "jaxcomp.cli.calibrate._fit", lambda recs, method, prior=None, transfers=True: params
+    )
     old = cal / "p.json"
     old.write_text("{}")
     before = hashes(cal)

@@ -119,15 +119,17 @@ def test_an_unexcited_joint_without_declared_types_is_not_locked(tmp_path):
 
 def test_currents_in_milliamperes_give_the_same_fit_scaled(robot, truth, sweeps, monkeypatch):
     """Every prior is scaled to the data: a recording in mA fits to the same COM offsets and
-    the same identifiability, with ratio, friction and standard errors x1000. (The Gen3 Lite
+    the same identifiability, with ratio, friction and standard errors x1000 (sweeps and the
+    transfers between them). (The Gen3 Lite
     states its current limit, so the fit refuses mA outright; the maths is checked with that
     check switched off, as on a model that states no current scale.)"""
-    in_ma = synthetic.recording(robot, truth, sweeps, seed=11, scale=1e-3)
+    move = np.deg2rad(55.0)  # rad/s, the transfers
+    in_ma = synthetic.recording(robot, truth, sweeps, seed=11, scale=1e-3, transfers=move)
     with pytest.raises(
         InputError, match=r"exceeds 2 times the current limit: joint_0 7\d\d\.\d A .*in mA"
     ):
         jax_fit.fit(in_ma)
-    amps = jax_fit.fit(synthetic.recording(robot, truth, sweeps, seed=11))
+    amps = jax_fit.fit(synthetic.recording(robot, truth, sweeps, seed=11, transfers=move))
     monkeypatch.setattr(jax_fit, "check_recordings", lambda recs: None)
     milli = jax_fit.fit(in_ma)
     np.testing.assert_allclose(milli.ratio, 1e3 * amps.ratio, rtol=1e-6)

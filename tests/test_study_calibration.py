@@ -36,12 +36,14 @@ from jaxcomp.identify.evaluate import (
 from jaxcomp.identify.moments import sweep_moments, world_moments
 from jaxcomp.identify.plan import CalibrationPlan, Sweep
 from jaxcomp.identify.random_plans import plan_seed
+from jaxcomp.identify.transfers import transfer_bins
 from jaxcomp.recording import load_recording
 from jaxcomp.robot_params import RobotParams, json_ready
 from jaxcomp.studies import calibration as sc
 from jaxcomp.studies.calibration_estimates import Estimates, jax_truth_vector
 from jaxcomp.studies.calibration_report import study_report
 from jaxcomp.studies.calibration_statistics import worst_coverage
+from jaxcomp.studies.plan_recording import signal_plans
 from jaxcomp.studies.processes import CLUSTER_VARIABLES
 from jaxcomp.studies.study_chunks import ChunkStore, study_chunks
 
@@ -329,9 +331,11 @@ def test_jax_fit_finds_the_true_robots(study, robot):
     noise = arrays["jax_noise_estimate"][:, swept]
     np.testing.assert_allclose(noise, 0.05, rtol=0.2)
     np.testing.assert_allclose(np.sqrt(np.mean(noise**2, axis=1)), 0.05, rtol=0.1)
-    # joints 0 and 5 are not swept: their frictions are not determined, their ratios tied;
-    # upright, the swept joints' ratios rest partly on the COM prior (confounded)
-    assert not ident[:, [0, 5, 6, 11]].any() and ident[:, [7, 8]].all()
+    # joints 0 and 5 are not swept: their ratios are tied; joint 0 never moves (its friction
+    # is not determined), joint 5 moves in the transfers between sweeps, which determine its
+    # friction; upright, the swept joints' ratios rest partly on the COM prior (confounded)
+    assert not ident[:, [0, 5, 6]].any() and ident[:, [7, 8, 11]].all()
+    assert np.abs(est[:, 11] - truth[:, 11]).max() < 0.03, (est[:, 11], truth[:, 11])
     assert not ident[:, :6].any()
     cov = report["coverage"]["jax"]["identified"]
     assert cov["count"] == ident.sum() >= 8 and cov["coverage_95"] >= 0.75
@@ -359,11 +363,11 @@ def test_same_seed_reproduces_the_numbers(study, tiny_plan, tmp_path):
 
 
 def test_streamed_moments_fit_as_the_recordings_moments(robot, tiny_plan):
-    """The study's path (each sweep's moments summed on the device while the world runs, its
-    steady samples chosen from the plan's commanded speed; vmapped fit) against the kept
-    recording reduced on the host (``sweep_moments``: steady samples from the measured speed)
-    and ``jax_fit.fit``: nearly the same samples, and fits that agree within their standard
-    errors (measured: 0.45 std at most, the ratios that rest partly on the COM prior)."""
+    """The study's path (each sweep's moments and each transfer's bins summed on the device
+    while the world runs, their steady samples chosen from the plan's commanded motion;
+    vmapped fit) against the kept recording reduced on the host (``sweep_moments``,
+    ``transfer_bins``: steady samples from the measured speed) and ``jax_fit.fit``: nearly the
+    same samples, and fits that agree within their standard errors."""
     truth = sc.draw_truth(robot, 1, SEED, sc.TruthSpread())
     signal = sc.plan_signal(sc.named_plan(robot, tiny_plan), sc.start_pose(robot))
     sim = sc.simulator(None, robot)  # compiled once for the module's runs of 1 world
@@ -378,10 +382,24 @@ def test_streamed_moments_fit_as_the_recordings_moments(robot, tiny_plan):
     held = np.ones_like(single.hold, bool)
     held[np.arange(len(single.joint)), single.joint] = False
     np.testing.assert_allclose(streamed.hold[held], single.hold[held], atol=2e-4)
+    # the transfers: every joint's counted samples and summed current nearly the same
+    host, device = transfer_bins(rec), res.transfers
+    n_host, n_dev = host.count.sum(0), device.count[0].sum(0)
+    assert n_host.sum() > 0.3 * single.count.sum(), (n_host, single.count)
+    assert np.all(np.abs(n_dev - n_host) <= 0.1 * n_host.max()), (n_dev, n_host)
+    mean_host = host.current.sum(0) / np.maximum(n_host, 1)
+    mean_dev = device.current[0].sum(0) / np.maximum(n_dev, 1)
+    np.testing.assert_allclose(mean_dev, mean_host, atol=0.05)
+    # and the servo's ringing in them: the measured acceleration (RMS over counted samples,
+    # rad/s^2), from the sample before on the device as on the host
+    rms = [np.sqrt((b.count * b.acceleration**2).sum(-2) / np.maximum(b.count.sum(-2), 1))
+           for b in (host, device.__class__(*(a[0] for a in device)))]  # fmt: skip
+    assert rms[0].max() > 1e-3, rms
+    np.testing.assert_allclose(rms[1], rms[0], rtol=0.05, atol=1e-5)
     model = jax_fit.fit_model(robot)
-    fit = jax_fit.fit_batch(model, res.moments, mesh=sim.mesh)  # as the study fits
+    fit = jax_fit.fit_batch(model, res.moments, transfers=res.transfers, mesh=sim.mesh)
     want = jax_fit.fit(rec, complete=False)  # the tiny plan sweeps joints 1-4
-    swept = np.array([e is not None for e in want.diagnostics["excitation"]])
+    swept = np.isin(np.arange(6), rec.joint)
     assert swept.sum() == 4
     for got, std, ref in (
         (fit.solution.ratio[0], fit.std[0, :6], want.ratio),
@@ -484,13 +502,17 @@ def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch)
     np.testing.assert_array_equal(arrays["plan_group"], [0, 1])
     assert report["jax"]["converged"] == 2 and report["faulted_worlds"] == 0
     # world w has the truth it has under any plan; it recorded its group's plan: the fit
-    # determines the friction of the joints that plan sweeps, and of no other
+    # determines the friction of the joints that plan sweeps or its transfers move, no other
     model = jax_fit.fit_model(robot)
     truth = jax_truth_vector(model, sc.draw_truth(robot, 2, SEED, sc.TruthSpread()))
     np.testing.assert_array_equal(arrays["truth"][:, : truth.shape[1]], truth)
+    only_moved = 0
     for w, plan in enumerate(plans):
         swept = np.isin(np.arange(n), plan.joints)
-        np.testing.assert_array_equal(arrays["jax_identified"][w, n : 2 * n], swept)
+        moved = signal_plans(sc.plan_signal(plan, start), 1).transfers.use.any(0)
+        np.testing.assert_array_equal(arrays["jax_identified"][w, n : 2 * n], swept | moved)
+        only_moved += np.count_nonzero(moved & ~swept)
+    assert only_moved > 0
     # the pooled gravity-current errors, recomputed from the estimates, and their comparison
     est = arrays["jax_estimate"]
     com = np.zeros((2, 2, len(robot.link_names), 3))
@@ -756,8 +778,8 @@ def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, uneven
     joints' motion within 0.5 mrad; the held joints within 10 mrad (where Coulomb friction
     stops a joint under its servo depends on how it got there, and a sweep in its own world
     starts from a freshly settled rest); the fits within 5e-3 (ratio, relative) and 0.5 mA
-    (friction). Without a kept recording the transfers between sweeps are not simulated:
-    fewer steps, the same moments bit for bit."""
+    (friction). Without a kept recording: the same steps (the fit uses the transfers, so they
+    are simulated), the same moments and transfer bins bit for bit."""
     from jaxcomp.studies.plan_signal import pack_segments
 
     start = sc.start_pose(robot)
@@ -780,11 +802,12 @@ def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, uneven
     side = sc.simulate(sim, truth, signal, keep=1, parallel=True, **kw)
     assert side.world_steps == 3 * (len(lanes.q_ref) + 500)
     bare = sc.simulate(sim, truth, signal, keep=0, parallel=True, **kw)
-    short = pack_segments(sc.plan_segments(signal, start, 10, transfers=False), 10, 500)
-    assert bare.world_steps == np.prod(short.q_ref.shape[:2]) + 500 * short.q_ref.shape[1]
-    assert bare.world_steps < 0.9 * side.world_steps and bare.recordings == []
-    for a, b in zip(bare.moments, side.moments, strict=True):
+    assert bare.world_steps == side.world_steps and bare.recordings == []
+    for a, b in zip(bare.moments + bare.transfers, side.moments + side.transfers, strict=True):
         np.testing.assert_array_equal(a, b)
+    # the transfers' samples: as many side by side as in turn (bins in another order)
+    counts = [r.transfers.count[0].sum(0) for r in (side, turn)]
+    assert counts[1].sum() > 0 and np.all(np.abs(counts[0] - counts[1]) <= 0.02 * counts[1].max())
     np.testing.assert_array_equal(bare.fault_step, side.fault_step)
     np.testing.assert_array_equal(side.fault_step, turn.fault_step)
     for a, b in zip(side.recordings, turn.recordings, strict=True):
@@ -797,12 +820,18 @@ def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, uneven
     np.testing.assert_array_equal(side.moments.joint, turn.moments.joint)
     assert np.abs(side.moments.count - turn.moments.count).max() <= 1
     model = jax_fit.fit_model(robot)
-    f_side = jax_fit.fit_batch(model, side.moments).solution
-    f_turn = jax_fit.fit_batch(model, turn.moments).solution
-    # held joints move a little differently (< 1e-2 rad), and the fit takes each sample's
-    # held pose: the ratios agree far inside their standard errors (1-5 %)
+    fits = [jax_fit.fit_batch(model, r.moments, transfers=r.transfers) for r in (side, turn)]
+    f_side, f_turn = (f.solution for f in fits)
+    # held joints move a little differently (< 1e-2 rad), the fit takes each sample's held
+    # pose, and a lane's transfer starts from a restart at rest: the ratios agree far inside
+    # their standard errors (1-5 %), the friction losses within a third of theirs
     np.testing.assert_allclose(f_side.ratio, f_turn.ratio, rtol=5e-3)
-    np.testing.assert_allclose(f_side.friction, f_turn.friction, atol=5e-4)
+    n = f_side.ratio.shape[1]
+    friction_std = fits[1].std[:, n : 2 * n]
+    assert np.all(np.abs(f_side.friction - f_turn.friction) <= friction_std / 3), (
+        f_side.friction - f_turn.friction,
+        friction_std,
+    )
 
 
 @TINY_STUDY

@@ -20,15 +20,16 @@ from jaxcomp.files import check_outputs
 _METHODS = ("jax", "scipy")
 
 
-def _fit(recordings, method: str, com_prior: float | None = None):
+def _fit(recordings, method: str, com_prior: float | None = None, transfers: bool = True):
     """The params ``method`` fits to ``recordings``, refused (InputError) when implausible
-    (``plausibility.check_params``)."""
+    (``plausibility.check_params``); ``transfers``: the JAX fit uses the moves between
+    sweeps too."""
     from jaxcomp.plausibility import check_params
 
     if method == "jax":
         from jaxcomp.identify.jax_fit import fit
 
-        params = fit(recordings, com_prior=com_prior)
+        params = fit(recordings, com_prior=com_prior, transfers=transfers)
     else:
         from jaxcomp.identify.baseline import fit_baseline
 
@@ -375,9 +376,17 @@ def _prepare_folder(out: Path, plan, robot, settings: dict, resume: bool, overwr
     type=click.FloatRange(min=0.0, min_open=True),
     default=None,
     help="Prior standard deviation of every link's COM offset per axis, m (default: the "
-    "model's jaxcomp_com_prior, else 10 %% of each link's radius of gyration, >= 2 mm).",
+    "model's jaxcomp_com_prior, else 10 % of each link's radius of gyration, >= 2 mm).",
 )
-def fit(recordings, method, each, out_file, plot_file, com_prior) -> None:
+@click.option(
+    "--transfers/--no-transfers",
+    default=True,
+    show_default=True,
+    help="JAX fit: also use the moves between sweeps (their constant-velocity cruise, every "
+    "joint at once, Coriolis torque modelled); --no-transfers fits the sweeps alone, e.g. "
+    "when the arm's own trajectory generator made the moves.",
+)
+def fit(recordings, method, each, out_file, plot_file, com_prior, transfers) -> None:
     """Fit ratio, friction and COM offsets to calibration recordings (.npz).
 
     Several recordings of one robot are fitted jointly into one params set (e.g. two mountings
@@ -393,10 +402,10 @@ def fit(recordings, method, each, out_file, plot_file, com_prior) -> None:
         folders = {Path(p).absolute().parent for p in (out_file, plot_file) if p}
         for folder in sorted(folders):
             stack.enter_context(output_folder(folder, "the folder of --out"))
-        _fit_into(recordings, method, each, out_file, plot_file, com_prior)
+        _fit_into(recordings, method, each, out_file, plot_file, com_prior, transfers)
 
 
-def _fit_into(recordings, method, each, out_file, plot_file, com_prior) -> None:
+def _fit_into(recordings, method, each, out_file, plot_file, com_prior, transfers) -> None:
     """``jaxcomp fit`` once its output folders are locked."""
     from jaxcomp.files import writing
     from jaxcomp.recording import load_recording, load_recordings
@@ -410,7 +419,9 @@ def _fit_into(recordings, method, each, out_file, plot_file, com_prior) -> None:
             from jaxcomp.plausibility import check_params
 
             first = next(recs)  # a batch is read while the one before is fitted
-            results = fit_each(chain([first], recs), progress=True, com_prior=com_prior)
+            results = fit_each(
+                chain([first], recs), progress=True, com_prior=com_prior, transfers=transfers
+            )
             robot = first.robot()
             for k, p in enumerate(results):
                 check_params(p, robot, f"the jax fit's params of recording {k}")
@@ -427,7 +438,7 @@ def _fit_into(recordings, method, each, out_file, plot_file, com_prior) -> None:
             plot_batch(results, plot_file)
         return
     recs = [load_recording(p) for p in recordings]
-    params = _fit(recs, method, com_prior)
+    params = _fit(recs, method, com_prior, transfers)
     _save(params, Path(out_file))
     robot = recs[0].robot()
     links = sorted(params.com_offset, key=robot.link_index)

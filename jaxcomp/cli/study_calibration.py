@@ -85,7 +85,7 @@ from jaxcomp.cli.study import scale_options, study
     default=None,
     help="The JAX fit's prior standard deviation of every link's COM offset per axis, m "
     "(default: the spread the truths are drawn from, --com-offset / sqrt(3); jaxcomp fit's "
-    "default is the model's, 10 %% of each link's radius of gyration).",
+    "default is the model's, 10 % of each link's radius of gyration).",
 )
 @click.option(
     "--poses", type=int, default=1000, show_default=True, help="Poses of the gravity error."

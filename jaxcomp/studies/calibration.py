@@ -81,7 +81,7 @@ from jaxcomp.studies.calibration_estimates import (
 )
 from jaxcomp.studies.calibration_figures import plot_coverage, plot_errors
 from jaxcomp.studies.calibration_report import concat_chunks, study_report
-from jaxcomp.studies.plan_recording import moments_like, simulate
+from jaxcomp.studies.plan_recording import fit_input_like, simulate
 from jaxcomp.studies.plan_signal import (
     PlanSignal,
     check_every,
@@ -402,7 +402,7 @@ def chunk_results(
         waited = time.perf_counter() - t0
     timing = dict(simulated.timing)
     t0 = time.perf_counter()
-    fits = _fit(study, simulated.moments, count)
+    fits = _fit(study, simulated.moments, simulated.transfers, count)
     timing["fit_jax"] = waited + time.perf_counter() - t0
     timing["fit_jax_compile"] = waited + fits.compile_seconds  # the part not beside the worlds
     timing["fit_jax_compile_aside"] = beside
@@ -457,18 +457,21 @@ def _compile_fit(study: _Study, signal: PlanSignal) -> float:
     """``_fit``'s program compiled for ``signal``'s moments; the seconds it took (0 when
     compiled before)."""
     with jax.default_device(jax.local_devices(backend="cpu")[0]):  # not behind the worlds
-        like = moments_like(study.sim, signal, study.settings.every)
-    return compile_fit_batch(study.model, like, study.fit_batch, study.sim.mesh)
+        like, bins = fit_input_like(study.sim, signal, study.settings.every)
+    return compile_fit_batch(study.model, like, study.fit_batch, study.sim.mesh, bins)
 
 
-def _fit(study: _Study, moments, count: int) -> BatchFit:
-    """The joint fits of a chunk's ``count`` worlds, ``study.fit_batch`` at a time (a chunk
-    of fewer worlds padded with copies of its last: one compiled batch for every chunk)."""
+def _fit(study: _Study, moments, transfers, count: int) -> BatchFit:
+    """The joint fits of a chunk's ``count`` worlds (their sweep moments and transfer bins),
+    ``study.fit_batch`` at a time (a chunk of fewer worlds padded with copies of its last: one
+    compiled batch for every chunk)."""
     pad = max(study.fit_batch - count, 0)
     if pad:
         idx = np.minimum(np.arange(count + pad), count - 1)
-        moments = jax.tree.map(lambda a: np.asarray(a)[idx], moments)
-    fits = batch_fit(study.model, moments, batch=study.fit_batch, mesh=study.sim.mesh)
+        moments, transfers = jax.tree.map(lambda a: np.asarray(a)[idx], (moments, transfers))
+    fits = batch_fit(
+        study.model, moments, transfers=transfers, batch=study.fit_batch, mesh=study.sim.mesh
+    )
     if not pad:
         return fits
     return fits._replace(

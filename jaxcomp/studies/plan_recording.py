@@ -1,21 +1,20 @@
 """A calibration plan recorded in every world of a ``BatchTruth`` on MJX, each sweep reduced to
-its moments on the device while the worlds run.
+its moments and each transfer's cruise to its bins on the device while the worlds run.
 
 The simulator steps at 1 kHz and every ``every``-th state (default 10: 100 Hz) is added to its
 sweep's running sums inside the compiled loop (``MjxSimulator.run(reduce=)`` with
 ``identify.moments.stream_add``; the steady samples are chosen from the plan's commanded speed,
-``identify.moments.stream_plan``), so that only each world's small sums come back to the host:
+``identify.moments.stream_plan``; the transfers' likewise, ``identify.transfers``), so that only
+each world's small sums come back to the host:
 host memory does not grow with the plan's length, and only the first ``keep`` worlds' samples
 leave the device (for the scipy fit). The current noise is the simulator's, drawn on the device
 from ``fold_in(fold_in(PRNGKey(seed), id), step)`` with ``id`` the world's index in the study
 and ``step`` the plan step (in whichever lane a sweep runs side by side), so a world's numbers
-depend neither on how worlds are batched, on the number of devices, nor on whether the
-transfers between sweeps are simulated.
+depend neither on how worlds are batched nor on the number of devices.
 
 Units: SI (rad, rad/s, A, s).
 """
 
-import functools
 import time
 from collections.abc import Callable
 from typing import NamedTuple
@@ -37,6 +36,16 @@ from jaxcomp.identify.moments import (
     stream_plan,
     streamed_moments,
 )
+from jaxcomp.identify.transfers import (
+    TransferBins,
+    TransferPlan,
+    TransferSums,
+    padded_bins,
+    transfer_add,
+    transfer_finish,
+    transfer_init,
+    transfer_plan,
+)
 from jaxcomp.recording import Recording
 from jaxcomp.studies.plan_signal import (
     Lanes,
@@ -49,8 +58,16 @@ from jaxcomp.studies.plan_signal import (
 from jaxcomp.studies.truth_draw import truth_rows
 
 
-def signal_stream_plan(signal: PlanSignal, every: int) -> StreamPlan:
-    """The ``StreamPlan`` of the samples of ``signal`` recorded every ``every`` steps (sample
+class SignalPlans(NamedTuple):
+    """What ``stream_add`` and ``transfer_add`` are told about the recorded samples of one
+    ``PlanSignal``: its sweeps' ``StreamPlan`` and its transfers' ``TransferPlan``."""
+
+    sweeps: StreamPlan
+    transfers: TransferPlan
+
+
+def signal_plans(signal: PlanSignal, every: int) -> SignalPlans:
+    """The ``SignalPlans`` of the samples of ``signal`` recorded every ``every`` steps (sample
     i: the state after plan step i every, commanded q_ref there, at the commanded velocity of
     that step)."""
     rec = np.arange(0, len(signal.joint), every)
@@ -58,34 +75,56 @@ def signal_stream_plan(signal: PlanSignal, every: int) -> StreamPlan:
     velocity = np.diff(q, axis=0, prepend=q[:1]) / CONTROL_PERIOD
     joint = signal.joint[rec]
     speed = velocity[rec, np.maximum(joint, 0)]
-    return stream_plan((rec + 1) * CONTROL_PERIOD, q[rec], speed, joint, signal.direction[rec])
+    t = (rec + 1) * CONTROL_PERIOD
+    return SignalPlans(
+        stream_plan(t, q[rec], speed, joint, signal.direction[rec]),
+        transfer_plan(t, q[rec], velocity[rec], joint),
+    )
 
 
-def sweep_reduction(plans: list[StreamPlan], n: int, current_lag: float) -> Reduction:
-    """The ``Reduction`` that sums each world's sweep moments on the device: world w follows
-    ``plans[group[w]]`` (padded to the longest, with samples outside any sweep)."""
-    rows = max(len(p.slot) for p in plans)
-    sweeps = max(p.sweep_joint.size for p in plans)
+def _stacked_rows(rows: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
+    """Per-sample rows of several plans (their first field an index, -1: none) padded to
+    the longest with samples that add nothing, stacked on axis 1 (R, G, ...)."""
+    length = max(len(r[0]) for r in rows)
 
-    def padded(p: StreamPlan) -> tuple[np.ndarray, ...]:
-        extra = rows - len(p.slot)
-        pad = [np.full(extra, -1), *(np.zeros((extra, *a.shape[1:])) for a in p.rows()[1:])]
-        return tuple(
-            np.concatenate([a, b.astype(a.dtype)]) for a, b in zip(p.rows(), pad, strict=True)
+    def padded(r: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
+        extra = length - len(r[0])
+        pad = [np.full(extra, -1), *(np.zeros((extra, *a.shape[1:])) for a in r[1:])]
+        return tuple(np.concatenate([a, b.astype(a.dtype)]) for a, b in zip(r, pad, strict=True))
+
+    return tuple(np.stack(a, axis=1) for a in zip(*map(padded, rows), strict=True))
+
+
+def plan_reduction(plans: list[SignalPlans], n: int, current_lag: float) -> Reduction:
+    """The ``Reduction`` that sums each world's sweep moments and transfer bins on the device
+    (carry: (``StreamSums``, ``TransferSums``)): world w follows ``plans[group[w]]``."""
+    sweeps = max(p.sweeps.sweep_joint.size for p in plans)
+    bins = max(p.transfers.use.shape[0] for p in plans)
+    xs = (
+        _stacked_rows([p.sweeps.rows() for p in plans]),
+        _stacked_rows([p.transfers.rows() for p in plans]),
+    )
+
+    def step(carry, x, q, dq, current, valid):
+        kw = {"fraction": STEADY_FRACTION, "current_lag": current_lag}
+        return (
+            stream_add(carry[0], x[0], q, dq, current, valid, **kw),
+            transfer_add(carry[1], x[1], q, dq, current, valid, **kw),
         )
 
-    xs = tuple(np.stack(a, axis=1) for a in zip(*map(padded, plans), strict=True))
-    step = functools.partial(stream_add, fraction=STEADY_FRACTION, current_lag=current_lag)
-    return Reduction(step, stream_init(sweeps, n), xs, ("sweep-moments", float(current_lag)))
+    init = (stream_init(sweeps, n), transfer_init(bins, n))
+    return Reduction(step, init, xs, ("plan-sums", float(current_lag)))
 
 
 class Simulated(NamedTuple):
     """What the simulation stage returns: ``moments`` (stacked SweepMoments, leading axis
-    N), ``recordings`` of the first M worlds, ``fault_step`` (N,) (-1: none), ``timing`` s
+    N), ``transfers`` (stacked TransferBins (N, B, n)), ``recordings`` of the first M worlds,
+    ``fault_step`` (N,) (-1: none), ``timing`` s
     (wall, compilation, stepping without compilation, turning the device's sums into
     moments), ``world_steps`` simulated (settling included)."""
 
     moments: SweepMoments
+    transfers: TransferBins
     recordings: list[Recording]
     fault_step: np.ndarray
     timing: dict[str, float]
@@ -115,9 +154,8 @@ def simulate(
     ``parallel``: run the plan's K sweeps side by side (``plan_segments``), each starting at
     rest where the sweep before it ends, packed into B <= K lanes no longer than the longest
     sweep (``pack_segments``): B MJX worlds per true robot for about 1/B of the steps, which
-    fills an accelerator that a few thousand worlds leave idle. Only batches with a world that
-    keeps its recording simulate the transfers between sweeps (with faults not counted there,
-    so that the other batches' worlds, which skip them, have the same numbers).
+    fills an accelerator that a few thousand worlds leave idle. Each segment simulates the
+    transfer to its sweep too (its data count; its faults do not, as the sweep's own).
     """
     n_worlds, steps = truth.worlds, len(signal.q_ref)
     start = start_pose(sim.robot)
@@ -127,10 +165,10 @@ def simulate(
         return _simulate_parallel(
             sim, truth, signal, start, seed, every, world_batch, keep, progress, timing, offset
         )
-    plan = signal_stream_plan(signal, every)
-    reduce = sweep_reduction([plan], sim.n, sim.current_lag)
+    plans = signal_plans(signal, every)
+    reduce = plan_reduction([plans], sim.n, sim.current_lag)
     kept = min(max(keep - offset, 0), world_batch, n_worlds)  # the same in every run
-    moments, recordings, faults = [], [], []
+    moments, transfers, recordings, faults = [], [], [], []
     rec_steps = np.arange(0, steps, every)
     for first in range(0, n_worlds, world_batch):
         rows = np.arange(first, min(first + world_batch, n_worlds))
@@ -139,7 +177,9 @@ def simulate(
         rec = _run(sim, truth_rows(truth, rows), signal.q_ref, start, seed, every, progress,
                    width, steps, steps, reduce, record, offset + rows, None, timing)  # fmt: skip
         t0 = time.perf_counter()
-        moments.append(streamed_moments(StreamSums(*rec.reduced), plan))
+        sums, bins = rec.reduced
+        moments.append(streamed_moments(StreamSums(*sums), plans.sweeps))
+        transfers.append(transfer_finish(TransferSums(*bins), plans.transfers))
         timing["simulate_moments"] += time.perf_counter() - t0
         faults.append(rec.fault_step)
         mine = int(np.count_nonzero(offset + rows < keep))
@@ -149,6 +189,7 @@ def simulate(
         ]
     return Simulated(
         stack_worlds(moments),
+        _concat_worlds(transfers),
         recordings,
         np.concatenate(faults),
         timing,
@@ -156,13 +197,25 @@ def simulate(
     )
 
 
-def moments_like(sim: MjxSimulator, signal: PlanSignal, every: int) -> SweepMoments:
-    """One true robot's sweep moments as ``simulate`` returns them (from zero sums; in turn
-    or side by side, the same sweeps in plan order): their shapes and types, e.g. to compile
-    the fits while the worlds still run."""
-    plan = signal_stream_plan(signal, every)
-    init = sweep_reduction([plan], sim.n, sim.current_lag).init
-    return streamed_moments(StreamSums(*(np.asarray(a)[None] for a in init)), plan)
+def _concat_worlds(parts: list[TransferBins]) -> TransferBins:
+    """Transfer bins of world batches (W_i, B_i, n) as one (W, B, n), padded to the most."""
+    size = max(p.size for p in parts)
+    padded = [padded_bins(p, size) for p in parts]
+    return TransferBins(*(np.concatenate(a) for a in zip(*padded, strict=True)))
+
+
+def fit_input_like(
+    sim: MjxSimulator, signal: PlanSignal, every: int
+) -> tuple[SweepMoments, TransferBins]:
+    """One true robot's sweep moments and transfer bins as ``simulate`` returns them (from
+    zero sums; in turn or side by side, the same sweeps in plan order and as many bins):
+    their shapes and types, e.g. to compile the fits while the worlds still run."""
+    plans = signal_plans(signal, every)
+    sums, bins = plan_reduction([plans], sim.n, sim.current_lag).init
+    return (
+        streamed_moments(StreamSums(*(np.asarray(a)[None] for a in sums)), plans.sweeps),
+        transfer_finish(TransferSums(*(np.asarray(a)[None] for a in bins)), plans.transfers),
+    )
 
 
 def _run(sim, truth, q_ref, start, seed, every, progress, width, steps, length, reduce, record,
@@ -229,19 +282,17 @@ def _simulate_parallel(
 ) -> Simulated:
     """``simulate(parallel=True)``: world w of lane b (``pack_segments``) is MJX world
     b * B + w of a run; the sweeps come back in plan order."""
-    layouts = {}  # with and without the transfers between sweeps
+    layout = _Layout.of(signal, start, every, sim)
+    seg, lanes, _, _, reduce = layout
     n_worlds, steps = truth.worlds, len(signal.q_ref)
     kept = min(max(keep - offset, 0), world_batch, n_worlds)
-    moments, recordings, faults = [], [], []
+    moments, transfers, recordings, faults = [], [], [], []
     rec_steps = np.arange(0, steps, every)
     world_steps = 0
     for first in range(0, n_worlds, world_batch):
         rows = np.arange(first, min(first + world_batch, n_worlds))
         width, nk = len(rows), min(kept, len(rows))
         mine = int(np.count_nonzero(offset + rows < keep))
-        if (mine > 0) not in layouts:
-            layouts[mine > 0] = _Layout.of(signal, start, every, mine > 0, sim)
-        seg, lanes, _, _, reduce = layouts[mine > 0]
         length, n_lane = lanes.q_ref.shape[:2]
         record = (np.arange(n_lane)[:, None] * width + np.arange(nk)).ravel()
         rec = _run(sim, truth_rows(truth, np.tile(rows, n_lane)), lanes.q_ref,
@@ -251,7 +302,9 @@ def _simulate_parallel(
                    lanes.plan_step)  # fmt: skip
         world_steps += width * n_lane * (length + SETTLE_STEPS)
         t0 = time.perf_counter()
-        moments.append(layouts[mine > 0].moments(StreamSums(*rec.reduced), width))
+        m, tb = layout.sums(rec.reduced, width)
+        moments.append(m)
+        transfers.append(tb)
         timing["simulate_moments"] += time.perf_counter() - t0
         faults.append(_plan_fault(rec.fault_step.reshape(n_lane, width), lanes, seg.first))
         if mine:  # the kept worlds' samples of each segment, in plan order
@@ -266,37 +319,53 @@ def _simulate_parallel(
             recordings += [
                 _recording(sim, signal, rec_steps, q[i], dq[i], cur[i]) for i in range(mine)
             ]
-    return Simulated(stack_worlds(moments), recordings, np.concatenate(faults), timing, world_steps)
+    return Simulated(
+        stack_worlds(moments),
+        _concat_worlds(transfers),
+        recordings,
+        np.concatenate(faults),
+        timing,
+        world_steps,
+    )
 
 
 class _Layout(NamedTuple):
-    """A plan's sweeps side by side: its segments, lanes, each lane's ``StreamPlan``, the
-    order that puts the lanes' sweeps in plan order, and the sweep-moment ``Reduction``."""
+    """A plan's sweeps (each with its transfer) side by side: its segments, lanes, each lane's
+    ``SignalPlans``, the order that puts the lanes' sweeps in plan order, and the
+    ``Reduction``."""
 
     seg: Segments
     lanes: Lanes
-    plans: list[StreamPlan]
+    plans: list[SignalPlans]
     order: np.ndarray
     reduce: Reduction
 
     @classmethod
-    def of(cls, signal: PlanSignal, start: np.ndarray, every: int, transfers: bool,
-           sim: MjxSimulator) -> "_Layout":  # fmt: skip
-        seg = plan_segments(signal, start, every, transfers)
+    def of(cls, signal: PlanSignal, start: np.ndarray, every: int, sim: MjxSimulator) -> "_Layout":
+        seg = plan_segments(signal, start, every, True)
         lanes = pack_segments(seg, every, SETTLE_STEPS)
-        plans = [signal_stream_plan(s, every) for s in lanes.signals]
+        plans = [signal_plans(s, every) for s in lanes.signals]
         keys = np.concatenate([_sweep_keys(s, every) for s in lanes.signals])
-        reduce = sweep_reduction(plans, sim.n, sim.current_lag)
+        reduce = plan_reduction(plans, sim.n, sim.current_lag)
         return cls(seg, lanes, plans, np.argsort(keys, kind="stable"), reduce)
 
-    def moments(self, sums: StreamSums, width: int) -> SweepMoments:
-        """The sweep moments, in plan order, of ``width`` true robots from their lanes'
-        ``sums`` (lane b's robots at rows b * width ... (b + 1) * width - 1)."""
+    def sums(self, reduced: tuple, width: int) -> tuple[SweepMoments, TransferBins]:
+        """The sweep moments, in plan order, and the transfer bins of ``width`` true robots
+        from their lanes' sums ``reduced`` (lane b's robots at rows b * width ... (b + 1) *
+        width - 1)."""
+        sweeps, bins = reduced
+        lane = [slice(b * width, (b + 1) * width) for b in range(len(self.plans))]
         per_lane = [
-            streamed_moments(StreamSums(*(a[b * width : (b + 1) * width] for a in sums)), p)
-            for b, p in enumerate(self.plans)
+            streamed_moments(StreamSums(*(a[k] for a in sweeps)), p.sweeps)
+            for k, p in zip(lane, self.plans, strict=True)
         ]
-        return join_sweeps(per_lane, self.order)
+        moved = [
+            transfer_finish(TransferSums(*(np.asarray(a)[k] for a in bins)), p.transfers)
+            for k, p in zip(lane, self.plans, strict=True)
+        ]
+        return join_sweeps(per_lane, self.order), TransferBins(
+            *(np.concatenate(a, axis=-2) for a in zip(*moved, strict=True))
+        )
 
 
 def _sweep_keys(signal: PlanSignal, every: int) -> np.ndarray:
