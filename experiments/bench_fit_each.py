@@ -4,10 +4,11 @@ recordings, as a user runs it (a fresh process each, start-up and file reading i
 ``--count`` recordings of the Gen3 Lite's default plan (synthetic, 1 kHz, its sweeps and the
 transfers between them, fresh 0.05 A noise per recording) are written to a temp folder; then,
 side by side: `jaxcomp fit --each` with the JAX fit with an empty XLA cache (cold) and again
-with the cache it left (warm), and `jaxcomp fit --each --method scipy`. Printed: wall seconds
-of each command.
+with the cache it left (warm), and `jaxcomp fit --each --method scipy`, the last two
+``--repeat`` times in turn (a busy machine slows both alike). Printed: wall seconds of each
+command (median, and the range over the repeats).
 
-    python experiments/bench_fit_each.py [--count 32]
+    python experiments/bench_fit_each.py [--count 32] [--repeat 3]
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ def _run(args: list[str], env: dict) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--count", type=int, default=32)
+    parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
     robot = load_robot("gen3_lite")
     nominal = RobotParams.nominal(robot)
@@ -67,16 +69,15 @@ def main() -> None:
         if subprocess.run([*jaxcomp, "--help"], capture_output=True).returncode != 0:
             jaxcomp = [sys.executable, "-c", "from jaxcomp.cli import main; main()"]
         out = str(folder / "each.json")
-        times = {
-            "jax, cold cache": _run([*jaxcomp, "fit", *files, "--each", "--out", out], env),
-            "jax, warm cache": _run([*jaxcomp, "fit", *files, "--each", "--out", out], env),
-            "scipy": _run(
-                [*jaxcomp, "fit", *files, "--each", "--method", "scipy", "--out", out], env
-            ),
-        }
+        jax_run = [*jaxcomp, "fit", *files, "--each", "--out", out]
+        times = {"jax, cold cache": [_run(jax_run, env)], "jax, warm cache": [], "scipy": []}
+        for _ in range(max(1, args.repeat)):
+            times["jax, warm cache"].append(_run(jax_run, env))
+            times["scipy"].append(_run([*jax_run, "--method", "scipy"], env))
     print(f"{args.count} recordings of {samples} samples, `jaxcomp fit --each`, end to end:")
     for name, seconds in times.items():
-        print(f"  {name:<16}{seconds:>7.2f} s")
+        spread = f"  ({min(seconds):.2f}-{max(seconds):.2f})" if len(seconds) > 1 else ""
+        print(f"  {name:<16}{np.median(seconds):>7.2f} s{spread}")
 
 
 if __name__ == "__main__":

@@ -4,13 +4,14 @@ each excited joint's ratio over noise repetitions against its Cramer-Rao bound.
 Per arm: a true robot (ratios 0.7-1.3 x the model's scale, COM offsets U(-4, 4) mm per axis)
 records the default plan twice, once plain and once carrying a known payload (0.5 kg on the Gen3
 Lite and the Gen3, 0.15 kg on the WidowX, at (5, 0, 5) cm in the end-effector frame, off the
-last joint's axis); synthetic recordings at 1 kHz with fresh current noise (the model's) in
+last joint's axis); synthetic recordings at 1 kHz with the transfers between the sweeps (as a
+recorder makes them; ``--no-transfers``: sweeps alone) and fresh current noise (the model's) in
 every repetition. Printed per arm and excited joint: the ratio error RMS over the repetitions,
 the RMS of the standard error the fit reports (the Cramer-Rao bound at the estimate), their
 quotient, and how often the ratio is reported identified, for the plain recording alone and for
 the pair.
 
-    python experiments/payload_cure.py [--arms gen3_lite wx250s gen3] [--reps 12]
+    python experiments/payload_cure.py [--arms gen3_lite wx250s gen3] [--reps 12] [--no-transfers]
 """
 
 from __future__ import annotations
@@ -67,6 +68,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--arms", nargs="+", default=["gen3_lite", "wx250s", "gen3"])
     parser.add_argument("--reps", type=int, default=12)
+    parser.add_argument("--no-transfers", action="store_true", help="record the sweeps alone")
     args = parser.parse_args()
     print(
         f"{'arm':<10}{'joint':<16}{'fit':<7}{'err RMS %':>10}{'CRB RMS %':>10}{'err/CRB':>9}"
@@ -75,13 +77,17 @@ def main() -> None:
     for arm in args.arms:
         robot = load_robot(arm)
         truth = truth_of(robot, 7)
-        sweeps = synthetic.plan_sweeps(default_plan(robot))
+        plan = default_plan(robot)
+        sweeps = synthetic.plan_sweeps(plan)
+        moves = 0.0 if args.no_transfers else plan.move_speed
         noise = model_current_noise(robot)
         mass = PAYLOAD.get(arm, 0.3)
         rows: dict[str, list] = {"alone": [], "pair": []}
         t0 = time.perf_counter()
         for rep in range(args.reps):
-            plain = synthetic.recording(robot, truth, sweeps, noise=noise, seed=2 * rep)
+            plain = synthetic.recording(
+                robot, truth, sweeps, noise=noise, seed=2 * rep, transfers=moves
+            )
             loaded = synthetic.recording(
                 robot,
                 truth,
@@ -90,6 +96,7 @@ def main() -> None:
                 seed=2 * rep + 1,
                 payload_mass=mass,
                 payload_com=(0.05, 0.0, 0.05),
+                transfers=moves,
             )
             rows["alone"].append(_summary(jax_fit.fit(plain), truth))
             rows["pair"].append(_summary(jax_fit.fit([plain, loaded]), truth))

@@ -90,6 +90,7 @@ from jaxcomp.identify.moments import (
 from jaxcomp.identify.transfers import (
     TransferBins,
     bucket,
+    empty_bins,
     padded_bins,
     stack_bins,
     transfer_bins,
@@ -330,30 +331,17 @@ def _gravity_of(model: FitModel, gravity, payload_mass, payload_com) -> Callable
     return tau
 
 
-def _coriolis_of(model: FitModel, payload_mass, payload_com) -> Callable:
-    """(delta (K,) m, q (n,) rad, dq (n,) rad/s) -> (n,) N m: the current-controlled joints'
-    Coriolis and centrifugal torque C(q, dq) dq, the COM offsets delta applied."""
+def _motion_of(model: FitModel, payload_mass, payload_com) -> Callable:
+    """(delta (K,) m, q (n,) rad, dq (n,) rad/s, ddq (n,) rad/s^2) -> (n,) N m: the
+    current-controlled joints' torque of motion M(q) ddq + C(q, dq) dq (the other joints at
+    rest), the COM offsets delta applied (``_offset_params``)."""
     tree, params = model.robot.tree, _offset_params(model, payload_mass, payload_com)
 
-    def tau(delta, qa, va):
-        qf = jnp.zeros(tree.nv).at[model.joints].set(qa)
-        vf = jnp.zeros(tree.nv).at[model.joints].set(va)
-        return dynamics.coriolis(tree, qf, vf, params(delta))[model.joints]
-
-    return tau
-
-
-def _inertial_of(model: FitModel, payload_mass, payload_com) -> Callable:
-    """(q (n,) rad, ddq (n,) rad/s^2) -> (n,) N m: the current-controlled joints' inertial
-    torque M(q) ddq of the nominal model with the recording's payload (the other joints at
-    rest)."""
-    tree = model.robot.tree
-    params = _offset_params(model, payload_mass, payload_com)(jnp.zeros(model.K))
-
-    def tau(qa, aa):
-        qf = jnp.zeros(tree.nv).at[model.joints].set(qa)
-        m = dynamics.mass_matrix(tree, qf, params)[model.joints][:, model.joints]
-        return m @ aa
+    def tau(delta, qa, va, aa):
+        qf, vf, af = (jnp.zeros(tree.nv).at[model.joints].set(x) for x in (qa, va, aa))
+        return dynamics.inverse_dynamics(tree, qf, vf, af, params(delta), jnp.zeros(3))[
+            model.joints
+        ]
 
     return tau
 
@@ -379,7 +367,7 @@ def _regressors(model: FitModel, q, swept, gravity, payload_mass, payload_com):
 _TRANSFER_CHUNK = 64
 #: Transfer bins that share the Coriolis torque's offset Jacobian, interpolated between the
 #: block's first and last bin (a bin of another leg than both gets none): the Jacobian costs
-#: ~10 times the rest of a bin's features.
+#: ~30 times a bin's torque (``dynamics.inverse_dynamics``).
 _CORIOLIS_BLOCK = 16
 #: Bins of one leg: velocities within this fraction of the largest joint speed.
 _SAME_LEG = 0.05
@@ -389,20 +377,20 @@ def _transfer_stats(model: FitModel, tb: TransferBins, gravity, payload_mass, pa
     """Sufficient statistics of one recording's transfer bins (``identify.transfers``): every
     joint's features [tau0 = g(q) + M(q) ddq + C(q, dq) dq (N m, nominal model), d tau0 /
     d delta (K), sign dq, dq (rad/s)] at each bin's mean pose, velocity and acceleration,
-    weighted by the samples it counts. The Coriolis torque's dependence on the COM offsets
+    weighted by the samples it counts (M ddq + C dq in one ``dynamics.inverse_dynamics``).
+    The Coriolis torque's dependence on the COM offsets
     counts (to first order, as gravity's; its Jacobian interpolated over ``_CORIOLIS_BLOCK``
     bins of one leg): on a joint that gravity hardly loads it can be most of the signal. The
     inertial torque's does not: it is a correction of a few mA, the offsets change it by ~1 %."""
     grav = _gravity_of(model, gravity, payload_mass, payload_com)
-    cor = _coriolis_of(model, payload_mass, payload_com)
-    inertial = _inertial_of(model, payload_mass, payload_com)
+    motion = _motion_of(model, payload_mass, payload_com)
     delta0 = jnp.zeros(model.K)
     n, F, B, G = model.n, model.K + 3, tb.count.shape[0], _CORIOLIS_BLOCK
 
     def coriolis_jacobian(pose, velocity):  # (c, n, K), see _CORIOLIS_BLOCK
         P, V = (jnp.reshape(a, (-1, G, n)) for a in (pose, velocity))
         ends = jnp.stack([P[:, 0], P[:, -1]]), jnp.stack([V[:, 0], V[:, -1]])
-        J = jax.vmap(jax.vmap(lambda q, v: jax.jacrev(cor)(delta0, q, v)))(*ends)
+        J = jax.vmap(jax.vmap(lambda q, v: jax.jacrev(motion)(delta0, q, v, 0.0 * v)))(*ends)
         top = jnp.abs(V).max(axis=(1, 2))[:, None] + 1e-300
         at_a = jnp.abs(V - V[:, :1]).max(-1) <= _SAME_LEG * top  # (c / G, G)
         at_z = jnp.abs(V - V[:, -1:]).max(-1) <= _SAME_LEG * top
@@ -414,7 +402,7 @@ def _transfer_stats(model: FitModel, tb: TransferBins, gravity, payload_mass, pa
 
     def add(st: Stats, part: tuple) -> tuple[Stats, None]:
         pose, velocity, acceleration, cur, square, count = part
-        tau0 = jax.vmap(lambda q, v, a: grav(delta0, q) + cor(delta0, q, v) + inertial(q, a))(
+        tau0 = jax.vmap(lambda q, v, a: grav(delta0, q) + motion(delta0, q, v, a))(
             pose, velocity, acceleration
         )
         reg = jax.vmap(lambda q: jax.jacfwd(grav)(delta0, q))(pose)
@@ -1153,9 +1141,7 @@ def fit_each(
 def _bins_of(recs: list[Recording], transfers: bool) -> TransferBins:
     """The recordings' transfer bins, stacked (none with ``transfers`` False)."""
     if not transfers:
-        return TransferBins(
-            *(np.zeros((len(recs), 0, recs[0].n_joints)) for _ in TransferBins._fields)
-        )
+        return empty_bins(recs[0].n_joints, stack=len(recs))
     return stack_bins([transfer_bins(r) for r in recs])
 
 
@@ -1240,7 +1226,7 @@ def _batch_input(
     )
     w, n = moments.hold.shape[0], moments.hold.shape[-1]
     if transfers is None:
-        tb = TransferBins(*(np.zeros((w, 0, n)) for _ in TransferBins._fields))
+        tb = empty_bins(n, stack=w)
     else:
         tb = padded_bins(transfers, bucket(transfers.size))
     place = (

@@ -77,9 +77,11 @@ class TransferBins(NamedTuple):
         return int(np.shape(self.count)[-2])
 
 
-def empty_bins(n: int, size: int = 0) -> TransferBins:
-    """``size`` transfer bins of n joints that count nothing."""
-    return TransferBins(*(np.zeros((size, n)) for _ in TransferBins._fields))
+def empty_bins(n: int, size: int = 0, stack: int | None = None) -> TransferBins:
+    """``size`` transfer bins of n joints that count nothing (``stack``: that many such
+    recordings, stacked)."""
+    shape = (size, n) if stack is None else (stack, size, n)
+    return TransferBins(*(np.zeros(shape) for _ in TransferBins._fields))
 
 
 def bucket(size: int) -> int:
@@ -153,11 +155,17 @@ def _binned(
     )
 
 
-def backward_acceleration(t: np.ndarray, dq: np.ndarray) -> np.ndarray:
+def backward_acceleration(
+    t: np.ndarray, dq: np.ndarray, at: np.ndarray | None = None
+) -> np.ndarray:
     """(R, n) rad/s^2: each sample's velocity ``dq`` (R, n) rad/s minus the one before, over
-    the time between them (``t`` (R,) s); 0 at the first sample."""
-    ddq = np.zeros_like(np.asarray(dq, float))
-    ddq[1:] = np.diff(dq, axis=0) / np.diff(t)[:, None]
+    the time between them (``t`` (R,) s); 0 at the first sample. ``at``: only the samples
+    of these indices (default all)."""
+    at = np.arange(len(t)) if at is None else np.asarray(at)
+    ddq = np.zeros((at.size, np.shape(dq)[1]))
+    later = at > 0
+    i = at[later]
+    ddq[later] = (dq[i] - dq[i - 1]) / (t[i] - t[i - 1])[:, None]
     return ddq
 
 
@@ -172,7 +180,6 @@ def transfer_bins(
     """The transfer bins of ``rec`` (see the module docstring); none when it has no transfer
     samples (a recording of sweeps alone)."""
     parts = []
-    ddq = backward_acceleration(rec.t, rec.dq)
     for leg in _legs(rec.joint < 0, rec.dq):
         dq = rec.dq[leg]
         mean = dq.mean(axis=0)
@@ -198,7 +205,14 @@ def transfer_bins(
         sign = np.sign(mean)
         parts.append(
             _binned(
-                pose[:, lead], pose, dq_keep, ddq[keep], rec.current[keep], sign, min_speed, width
+                pose[:, lead],
+                pose,
+                dq_keep,
+                backward_acceleration(rec.t, rec.dq, keep),
+                rec.current[keep],
+                sign,
+                min_speed,
+                width,
             )
         )
     if not parts:

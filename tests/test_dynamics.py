@@ -1,6 +1,8 @@
 """JAX dynamics against MuJoCo and pinocchio on 1000 random poses, for three robots (and the
 mobile manipulator for the one-pass function)."""
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -56,9 +58,10 @@ class Case:
         rng = np.random.default_rng(0)
         self.q = rng.uniform(np.maximum(lo, -3.0), np.minimum(hi, 3.0), (N_POSES, robot.nv))
         self.dq = rng.normal(0, 1.5, (N_POSES, robot.nv))
+        self.ddq = rng.normal(0, 4.0, (N_POSES, robot.nv))
         sites = range(len(tree.site_names))
 
-        def evaluate(q, dq):
+        def evaluate(q, dq, ddq):
             return (
                 dynamics.gravity(tree, q),
                 dynamics.mass_matrix(tree, q),
@@ -66,9 +69,10 @@ class Case:
                 jnp.stack([dynamics.site_jacobian(tree, q, s) for s in sites]),
                 jnp.stack([dynamics.site_pose(tree, q, s)[0] for s in sites]),
                 dynamics.kinematics_and_dynamics(tree, q, 0),  # the one-pass function, site 0
+                dynamics.inverse_dynamics(tree, q, dq, ddq),
             )
 
-        self.jax = jax.tree.map(np.asarray, jax.jit(jax.vmap(evaluate))(self.q, self.dq))
+        self.jax = jax.tree.map(np.asarray, jax.jit(jax.vmap(evaluate))(self.q, self.dq, self.ddq))
         self.kd = self.jax[5]  # fields (N_POSES, ...)
 
     def to_pin(self, x: np.ndarray) -> np.ndarray:
@@ -120,6 +124,8 @@ def test_against_mujoco(case):
         np.testing.assert_allclose(case.jax[0][k], g_ref.qfrc_bias, atol=TOL, rtol=0)
         np.testing.assert_allclose(case.jax[1][k], full_m, atol=TOL, rtol=0)
         np.testing.assert_allclose(case.jax[2][k], d.qfrc_bias, atol=TOL, rtol=0)
+        tau = full_m @ case.ddq[k] + d.qfrc_bias
+        np.testing.assert_allclose(case.jax[6][k], tau, atol=TOL, rtol=0)
         for s in range(m.nsite):
             mujoco.mj_jacSite(m, d, jacp, jacr, s)
             np.testing.assert_allclose(case.jax[3][k, s], np.vstack([jacp, jacr]), atol=TOL, rtol=0)
@@ -145,6 +151,10 @@ def test_against_pinocchio(case):
         )
         np.testing.assert_allclose(
             case.jax[2][k], pin.nonLinearEffects(pm, pd, q, v)[perm], atol=TOL, rtol=0
+        )
+        a = case.to_pin(case.ddq[k])
+        np.testing.assert_allclose(
+            case.jax[6][k], pin.rnea(pm, pd, q, v, a)[perm], atol=TOL, rtol=0
         )
         mass = pin.crba(pm, pd, q)
         mass = np.triu(mass) + np.triu(mass, 1).T
@@ -290,18 +300,24 @@ def test_mobile_arm_against_mujoco():
     robot = jaxcomp.load_robot("mobile_gen3_lite")
     tree, m = robot.tree, robot.model
     lo, hi = robot.joint_limits.T
-    q = np.random.default_rng(4).uniform(np.maximum(lo, -3.0), np.minimum(hi, 3.0), (30, tree.nv))
+    rng = np.random.default_rng(4)
+    q = rng.uniform(np.maximum(lo, -3.0), np.minimum(hi, 3.0), (30, tree.nv))
+    dq, ddq = rng.normal(0, 1.5, (2, 30, tree.nv))
 
     site = robot.site_index("end_effector")
     kd = jax.jit(jax.vmap(lambda q: dynamics.kinematics_and_dynamics(tree, q, site)))(q)
+    tau = jax.jit(jax.vmap(partial(dynamics.inverse_dynamics, tree)))(q, dq, ddq)
     d = mujoco.MjData(m)
     full_m = np.zeros((m.nv, m.nv))
     jacp, jacr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
     for k in range(len(q)):
-        d.qpos[:] = q[k]
+        d.qpos[:], d.qvel[:] = q[k], dq[k]
         mujoco.mj_forward(m, d)
         mujoco.mj_fullM(m, d, full_m)
         mujoco.mj_jacSite(m, d, jacp, jacr, site)
+        np.testing.assert_allclose(tau[k], full_m @ ddq[k] + d.qfrc_bias, atol=TOL, rtol=0)
+        d.qvel[:] = 0.0
+        mujoco.mj_forward(m, d)
         np.testing.assert_allclose(kd.gravity[k], d.qfrc_bias, atol=TOL, rtol=0)
         np.testing.assert_allclose(kd.mass_matrix[k], full_m, atol=TOL, rtol=0)
         np.testing.assert_allclose(kd.jacobian[k], np.vstack([jacp, jacr]), atol=TOL, rtol=0)
