@@ -33,7 +33,7 @@ Priors, each the same in any current unit and on any robot:
   least ``PRIOR_COM_MIN``; ``fit(com_prior=...)`` sets one for every link);
 - ratios: log r Gaussian (``PRIOR_LOG_RATIO``) around the data's ratio scale, the nominal
   ratios' proportions scaled by the geometric mean of the excited joints' ratios; a joint the
-  data do not excite (its nominal gravity torque determines its ratio to worse than
+  data do not excite (its nominal torque determines its ratio to worse than
   ``EXCITED``) is tied (``TIE``) to the excited joints of its actuator type only where the
   model declares types (``jaxcomp_actuator_types``), and keeps the data's scale otherwise;
 - viscous terms: ``PRIOR_VISCOUS`` x the joint's RMS current over its RMS pass speed; a joint
@@ -166,7 +166,7 @@ class Solution(NamedTuple):
     ``confounded`` (n,): an excited joint whose ratio rests on the COM prior, and
     ``confounded_link`` (n,) the fitted link (index into ``FitModel.links``) most correlated
     with it; ``excitation`` (n,): relative standard error of each ratio from the nominal
-    gravity torque alone (inf: no signal).
+    torque alone (gravity; in the transfers also inertial and Coriolis; inf: no signal).
     """
 
     ratio: jax.Array  # (n,) A/(N m)
@@ -527,8 +527,9 @@ class _Priors(NamedTuple):
 
 
 def _prefit(st: Stats, K: int) -> tuple[jax.Array, jax.Array]:
-    """Each joint's ratio (n,) from its nominal gravity torque alone (COM offsets 0, current
-    = r tau0 + l d), and its relative standard error (n,; inf without a gravity signal)."""
+    """Each joint's ratio (n,) from its nominal torque tau0 alone (gravity; in the transfers
+    also inertial and Coriolis; COM offsets 0, current = r tau0 + l d), and its relative
+    standard error (n,; inf without a signal)."""
     idx = jnp.asarray([0, K + 1])
     A = st.S[:, idx][:, :, idx]
     y = st.s[:, idx]
