@@ -5,8 +5,11 @@
 Each arm joint gets one MuJoCo actuator that is either the robot's own stiff servo (POSITION and
 VELOCITY modes: a PD whose damping MuJoCo integrates implicitly) or a pure torque source
 (CURRENT mode: torque = commanded current / true ratio). The measured current is the true
-ratio times the torque the actuator actually applied (after MuJoCo's effort-limit clipping)
-plus Gaussian noise. Coulomb friction is MuJoCo's ``frictionloss`` with a stiff solver
+ratio times the torque the actuator actually applied over the step plus Gaussian noise: after
+MuJoCo's effort-limit clipping, and with the servo's damping at the step's new velocity, as
+the implicit integrator applies it (``qfrc_actuator`` holds it at the old velocity: the
+difference, kv (dq_new - dq_old), is an inertia of 1 ms x kv that no real arm's current shows,
+up to half a heavy joint's own). Coulomb friction is MuJoCo's ``frictionloss`` with a stiff solver
 reference, so that it is delivered in full on every joint.
 
 ``SimArm`` is the ``Arm`` interface on a ``Simulator``; ``Simulator.base`` the ``Base``.
@@ -181,6 +184,7 @@ class Simulator:
         self._faults: list[str] = []
         self.fault_joints: set[int] = set()
         self.current = np.zeros(n)
+        self._applied = np.zeros(n)
         self._gains(servo_bandwidth)
         self.twist_limits = TwistLimits.from_robot(self.robot)
         self._limiter = TwistLimiter(self.twist_limits)
@@ -200,6 +204,8 @@ class Simulator:
         self._v_q = d.qpos[self._qsl]
         self._v_dq = d.qvel[self._dsl]
         self._v_qfrc = d.qfrc_actuator[self._dsl]
+        self._v_damping = self.model.actuator_biasprm[:n, 2]  # -kv of a servo, 0 in current mode
+        self._dq_before = np.zeros(n)
 
     def _base_views(self) -> None:
         """Indices (slices when contiguous) of the base joints' qpos and qvel."""
@@ -347,8 +353,9 @@ class Simulator:
 
     @property
     def applied_torque(self) -> np.ndarray:
-        """(n,) N m the arm's actuators applied during the last step (after clipping)."""
-        return self.data.qfrc_actuator[self._dadr].copy()
+        """(n,) N m the arm's actuators applied during the last step (after clipping, the servo
+        damping at the step's new velocity): the measured current over the true ratio."""
+        return self._applied.copy()
 
     @property
     def friction_torque(self) -> np.ndarray:
@@ -462,6 +469,8 @@ class Simulator:
             if not self.interaction.idle and na:
                 self._apply_interaction()
             t0 = d.time
+            if na:
+                self._dq_before[:] = self._v_dq
             mujoco.mj_step(m, d)
             if d.time <= t0 or t0 == 0.0:  # after a reset MuJoCo's time starts again
                 self._check_stability(t0)
@@ -507,7 +516,10 @@ class Simulator:
         if k == 0:
             self._noise = self._rng.normal(0.0, self.truth.current_noise, (_NOISE_BLOCK, self.n))
         self._k += 1
-        current = self._ratio * self._v_qfrc
+        torque = self._v_qfrc  # the servo's damping at the old velocity: as applied, the new
+        damped = torque + self._v_damping * (self._v_dq - self._dq_before)
+        self._applied = np.where(np.abs(torque) < self.effort, damped, torque)
+        current = self._ratio * self._applied
         current += self._noise[k]
         self.current = current  # a new array each step: states keep theirs
         dq = self._v_dq

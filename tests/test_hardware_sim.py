@@ -6,6 +6,7 @@ import mujoco
 import numpy as np
 import pytest
 
+import jaxcomp
 from jaxcomp import dynamics
 from jaxcomp.errors import InputError
 from jaxcomp.hardware import (
@@ -18,7 +19,7 @@ from jaxcomp.hardware import (
     TrueRobot,
 )
 from jaxcomp.hardware.interaction import Rope
-from jaxcomp.robot_params import RobotParams
+from jaxcomp.robot_params import RobotParams, arm_joint_indices, arm_joint_names
 
 SWEEP_POSE = np.deg2rad([0.0, 20.0, 90.0, 0.0, 60.0, 0.0])  # gravity loads joints 1-4
 
@@ -121,6 +122,56 @@ def test_current_mode_torque_is_current_over_true_ratio():
     inertia = full[0, 0]  # the other joints are held
     accel = (s.dq[0] - s0.dq[0]) / (s.t - s0.t)
     assert accel == pytest.approx(torque / inertia, rel=0.02)
+
+
+@pytest.mark.parametrize("arm_name", ["gen3_lite", "odd7"])
+def test_a_moving_arms_current_is_its_inverse_dynamics(arm_name, tmp_path):
+    """Every joint swinging under its position servo (no friction, no noise): the measured
+    current is r (M ddq + C dq + g) of the true robot at the pose where it flowed
+    (q - current_lag dq), ddq the recorded velocity's step over the time step, to 1e-3 of
+    the servo damping's implicit share kv (dq_new - dq_old), which ``qfrc_actuator`` leaves
+    out (as an inertia of 1 ms x kv it would bias a fit of the transfers)."""
+    from odd_arms import serial_arm
+
+    if arm_name == "gen3_lite":
+        robot = jaxcomp.load_robot("gen3_lite")
+    else:
+        path = tmp_path / "odd7.xml"
+        path.write_text(serial_arm(7, n=5, continuous=(0,)))
+        robot = jaxcomp.load_robot(str(path))
+    n = len(arm_joint_names(robot))
+    rng = np.random.default_rng(1)
+    truth = TrueRobot(
+        RobotParams(
+            robot.name,
+            rng.uniform(0.3, 2.0, n),
+            np.zeros(n),
+            {k: rng.uniform(-0.004, 0.004, 3) for k in robot.link_names[:n]},
+            joints=arm_joint_names(robot),
+        ),
+        current_noise=0.0,
+    )
+    sim = Simulator(robot, truth, initial_pose="zero")
+    arm, idx = sim.arm, arm_joint_indices(robot)
+    q0 = arm.read().q
+    phase = rng.uniform(0, 2 * np.pi, n)
+    swing = lambda t: 0.2 * (np.sin(2 * np.pi * 0.5 * t + phase) - np.sin(phase))  # noqa: E731
+    states = [arm.cycle(ArmCommand(position=q0 + swing(k * arm.dt))) for k in range(1500)]
+    assert not states[-1].faults
+    q, dq, c = (np.array([getattr(s, f) for s in states]) for f in ("q", "dq", "current"))
+    ddq = np.diff(dq, axis=0) / arm.dt
+    pose = q[1:] - arm.current_lag * dq[1:]
+    params = truth.params.inertial_params(robot)
+    full = lambda x: jnp.zeros(robot.nv).at[idx].set(x)  # noqa: E731
+    tau = jax.jit(
+        jax.vmap(
+            lambda a, b, e: dynamics.inverse_dynamics(robot.tree, full(a), full(b), full(e), params)
+        )
+    )(pose, dq[1:], ddq)
+    model = truth.ratio * np.asarray(tau)[:, idx]
+    share = truth.ratio * sim.servo_kv * np.diff(dq, axis=0)  # what qfrc_actuator leaves out
+    assert np.sqrt(np.mean(share**2)) > 1e-2  # A: tens of mA
+    np.testing.assert_allclose(c[1:], model, atol=1e-3 * np.abs(share).max(), rtol=0)
 
 
 def test_viscous_friction_adds_damping_torque():

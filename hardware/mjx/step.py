@@ -1,9 +1,10 @@
 """One physics step of an MJX world: MuJoCo C's implicitfast integrator.
 
 ``implicitfast_step(model, dtype)`` returns the step ``(m, d) -> (qpos, qvel, qacc_warmstart,
-qfrc_actuator, d_forward)`` that both runners vmap over worlds. It integrates as MuJoCo C does
-when an effort limit clamps a servo (see its docstring), which ``mjx.step`` does not, so that
-the MJX worlds agree with the CPU Simulator. Units: rad, rad/s, N m, s.
+applied actuator torque, d_forward)`` that both runners vmap over worlds. It integrates as
+MuJoCo C does when an effort limit clamps a servo (see its docstring), which ``mjx.step`` does
+not, and reports the actuator torque as the CPU Simulator measures it (its damping at the
+step's new velocity), so that the MJX worlds agree with it. Units: rad, rad/s, N m, s.
 """
 
 from __future__ import annotations
@@ -18,15 +19,18 @@ from mujoco import mjx
 
 from jaxcomp.errors import ModelError
 
-#: One world's step: (model, data) -> (qpos, qvel, qacc_warmstart, qfrc_actuator, the data
-#: after ``mjx.forward`` at the step's start).
+#: One world's step: (model, data) -> (qpos, qvel, qacc_warmstart, applied actuator torque,
+#: the data after ``mjx.forward`` at the step's start).
 Step = Callable[[mjx.Model, mjx.Data], tuple[jax.Array, jax.Array, jax.Array, jax.Array, mjx.Data]]
 
 
 def implicitfast_step(model: mujoco.MjModel, dtype: jnp.dtype) -> Step:
     """One ``mj_step`` of MuJoCo C's implicitfast integrator for hinge/slide joints driven
-    by joint-transmission actuators: (m, d) -> (qpos, qvel, qacc_warmstart, qfrc_actuator,
-    d_forward), the last the data after ``mjx.forward`` at the step's start (kinematics).
+    by joint-transmission actuators: (m, d) -> (qpos, qvel, qacc_warmstart, applied, d_forward):
+    applied (nv,) N m the actuators' joint torque over the step, qfrc_actuator with the servo
+    damping at the new velocity (qfrc_actuator + dt (d qfrc_actuator / d qvel) qacc, as the
+    implicit integration applies it), the last the data after ``mjx.forward`` at the step's
+    start (kinematics).
 
     ``mjx.step`` keeps a servo's velocity derivative (-kv) in the implicit matrix even when its
     joint torque is clamped at the effort limit (``jnt_actfrcrange``); MuJoCo C (4.0) leaves it
@@ -54,11 +58,12 @@ def implicitfast_step(model: mujoco.MjModel, dtype: jnp.dtype) -> Step:
         raw = jnp.zeros(nv, dtype).at[dof].add(gear * d.actuator_force)
         clamped = (raw[dof] <= lo) | (raw[dof] >= hi)
         bias_vel = jnp.where(clamped, 0.0, gear * gear * m.actuator_biasprm[:, 2])
-        deriv = jnp.zeros(nv, dtype).at[dof].add(bias_vel) - m.dof_damping
-        m_hat = mjx.full_m(m, d) - dt * jnp.diag(deriv)
+        actuated = jnp.zeros(nv, dtype).at[dof].add(bias_vel)
+        m_hat = mjx.full_m(m, d) - dt * jnp.diag(actuated - m.dof_damping)
         factor = jax.scipy.linalg.cho_factor(m_hat)
         qacc = jax.scipy.linalg.cho_solve(factor, d.qfrc_smooth + d.qfrc_constraint)
         qvel = d.qvel + dt * qacc
-        return d.qpos + dt * qvel, qvel, d.qacc, d.qfrc_actuator, d
+        applied = d.qfrc_actuator + dt * actuated * qacc
+        return d.qpos + dt * qvel, qvel, d.qacc, applied, d
 
     return step
