@@ -1,10 +1,10 @@
 """The joint JAX fit against the paper's scipy fit on any arm, under plans and truths drawn at
 random (the protocol of a new user, on the CPU simulator).
 
-Per arm and seed: a true robot (ratios U(0.3, 2.0) A/(N m), times the joint's ratio scale where
-the model states one (``plausibility.stated_scale``: the built-in arms do; on them the bare range
-would draw currents that no such arm gives, e.g. 44 A on the Gen3's shoulder, which the fit
-refuses), friction losses U(0.15, 0.8) A,
+Per arm and seed: a true robot (ratios U(0.3, 2.0) A/(N m) and friction losses U(0.15, 0.8) A,
+both times the joint's ratio scale where the model states one (``plausibility.stated_scale``: the
+built-in arms do; on them the bare ranges would draw currents that no such arm gives, e.g. 44 A
+on the Gen3's shoulder, which the fit refuses, or friction torques its servo cannot overcome),
 COM offsets N(0, 4 mm) per axis on every moving link, 0.03 A current noise) records a plan of
 every joint swept from -100 to +100 deg (inside its limits) at 20 deg/s, once from the model's
 rest pose and once from a pose drawn within the middle 60 % of the limits. Both fits take the
@@ -69,10 +69,11 @@ def draw_truth(robot: Robot, seed: int) -> TrueRobot:
         if m
     }
     scale, stated = stated_scale(robot)
+    scale = np.where(stated, scale, 1.0)
     params = RobotParams(
         robot.name,
-        np.where(stated, scale, 1.0) * rng.uniform(0.3, 2.0, n),
-        rng.uniform(0.15, 0.8, n),
+        scale * rng.uniform(0.3, 2.0, n),
+        scale * rng.uniform(0.15, 0.8, n),
         offsets,
         method="truth",
         joints=arm_joint_names(robot),

@@ -32,7 +32,8 @@ Priors, each the same in any current unit and on any robot:
   ``jaxcomp_com_prior``, else ``PRIOR_COM_FRACTION`` of the link's radius of gyration, at
   least ``PRIOR_COM_MIN``; ``fit(com_prior=...)`` sets one for every link);
 - ratios: log r Gaussian (``PRIOR_LOG_RATIO``) around the data's ratio scale, the nominal
-  ratios' proportions scaled by the geometric mean of the excited joints' ratios; a joint the
+  ratios' proportions scaled by the median of the excited joints' ratios to them (a joint whose
+  prefit the unknown COM offsets dominate does not drag it); a joint the
   data do not excite (its nominal torque determines its ratio to worse than
   ``EXCITED``) is tied (``TIE``) to the excited joints of its actuator type only where the
   model declares types (``jaxcomp_actuator_types``), and keeps the data's scale otherwise;
@@ -106,8 +107,8 @@ from jaxcomp.robot_params import RobotParams, arm_joint_indices, arm_joint_names
 PRIOR_COM_FRACTION = 0.1
 #: Smallest default COM prior, m.
 PRIOR_COM_MIN = 0.002
-#: Prior standard deviation of log(ratio) around the data's ratio scale (the geometric mean of
-#: the well-excited joints' ratios relative to the nominal ones): a factor e either way.
+#: Prior standard deviation of log(ratio) around the data's ratio scale (the median of the
+#: excited joints' ratios relative to the nominal ones): a factor e either way.
 PRIOR_LOG_RATIO = 1.0
 #: A joint is excited when its swept nominal gravity torque alone determines its ratio to
 #: this relative standard error (the gravity signal against the current noise), 1.
@@ -556,7 +557,7 @@ def _priors(st: Stats, key: tuple) -> tuple[_Priors, jax.Array, jax.Array, jax.A
     logs = jnp.log(jnp.maximum(r_hat, 1e-300) / ratio0)
     positive = r_hat > 0
     use = jnp.where(jnp.any(excited), excited, positive)
-    scale = jnp.where(jnp.any(use), jnp.sum(use * logs) / jnp.maximum(jnp.sum(use), 1), 0.0)
+    scale = jnp.where(jnp.any(use), jnp.nanmedian(jnp.where(use, logs, jnp.nan)), 0.0)
     centre = jnp.log(ratio0) + scale
     if types is None:
         tie, tie_w = jnp.zeros((n, n)), jnp.zeros(n)
@@ -642,6 +643,11 @@ def _inverse(H: jax.Array) -> jax.Array:
     return _solve_spd(H, jnp.eye(H.shape[0]))
 
 
+#: The fit starts from a joint's prefit ratio within this many prior widths of the prior's
+#: centre (``solve``).
+_START_SPAN = 2.0
+
+
 @partial(jax.jit, static_argnums=0)
 def solve(model_key: tuple, st: Stats, max_iter: int = 50) -> Solution:
     """The joint fit on sufficient statistics (pure given the statics; vmap-able).
@@ -702,7 +708,12 @@ def solve(model_key: tuple, st: Stats, max_iter: int = 50) -> Solution:
     def cont(carry):
         return (~carry[3]) & (carry[2] < max_iter) & (carry[1] < 1e12)
 
-    rho0 = jnp.where(excited, jnp.log(jnp.maximum(r_hat, 1e-300)), pr.centre)
+    # start from each excited joint's prefit ratio, unless the prior puts it beyond
+    # ``_START_SPAN`` widths (a prefit that the unknown COM offsets dominate): there from
+    # the prior's centre
+    log_hat = jnp.log(jnp.maximum(r_hat, 1e-300))
+    near = jnp.abs(log_hat - pr.centre) <= _START_SPAN * PRIOR_LOG_RATIO
+    rho0 = jnp.where(excited & near, log_hat, pr.centre)
     s2_0 = variances(rho0, jnp.where(st.samples > 0, cs**2, 1.0))
     init = (rho0, jnp.asarray(1e-3), jnp.asarray(0), jnp.asarray(False), s2_0)
     rho, lam, it, done, s2 = jax.lax.while_loop(cont, step, init)
