@@ -8,9 +8,9 @@ VELOCITY modes: a PD whose damping MuJoCo integrates implicitly) or a pure torqu
 ratio times the torque the actuator actually applied over the step plus Gaussian noise: after
 MuJoCo's effort-limit clipping, and with the servo's damping at the step's new velocity, as
 the implicit integrator applies it (``qfrc_actuator`` holds it at the old velocity: the
-difference, kv (dq_new - dq_old), is an inertia of 1 ms x kv that no real arm's current shows,
-up to half a heavy joint's own). Coulomb friction is MuJoCo's ``frictionloss`` with a stiff solver
-reference, so that it is delivered in full on every joint.
+difference, kv (dq_new - dq_old), is an inertia of 1 ms x kv that no real arm's current shows:
+amperes while an arm swings). Coulomb friction is MuJoCo's ``frictionloss`` with a stiff
+solver reference, so that it is delivered in full on every joint.
 
 ``SimArm`` is the ``Arm`` interface on a ``Simulator``; ``Simulator.base`` the ``Base``.
 Lock-step by default (each ``cycle`` advances 1 ms, as fast as the CPU allows); with

@@ -379,10 +379,10 @@ def _transfer_stats(model: FitModel, tb: TransferBins, gravity, payload_mass, pa
     joint's features [tau0 = g(q) + M(q) ddq + C(q, dq) dq (N m, nominal model), d tau0 /
     d delta (K), sign dq, dq (rad/s)] at each bin's mean pose, velocity and acceleration,
     weighted by the samples it counts (M ddq + C dq in one ``dynamics.inverse_dynamics``).
-    The Coriolis torque's dependence on the COM offsets
-    counts (to first order, as gravity's; its Jacobian interpolated over ``_CORIOLIS_BLOCK``
-    bins of one leg): on a joint that gravity hardly loads it can be most of the signal. The
-    inertial torque's does not: it is a correction of a few mA, the offsets change it by ~1 %."""
+    The Coriolis torque's dependence on the COM offsets counts (to first order, as gravity's;
+    its Jacobian interpolated over ``_CORIOLIS_BLOCK`` bins of one leg): on a joint that
+    gravity hardly loads it can be most of the signal. The inertial torque's does not: it is
+    a correction of a few mA, the offsets change it by ~1 %."""
     grav = _gravity_of(model, gravity, payload_mass, payload_com)
     motion = _motion_of(model, payload_mass, payload_com)
     delta0 = jnp.zeros(model.K)
@@ -391,7 +391,8 @@ def _transfer_stats(model: FitModel, tb: TransferBins, gravity, payload_mass, pa
     def coriolis_jacobian(pose, velocity):  # (c, n, K), see _CORIOLIS_BLOCK
         P, V = (jnp.reshape(a, (-1, G, n)) for a in (pose, velocity))
         ends = jnp.stack([P[:, 0], P[:, -1]]), jnp.stack([V[:, 0], V[:, -1]])
-        J = jax.vmap(jax.vmap(lambda q, v: jax.jacrev(motion)(delta0, q, v, 0.0 * v)))(*ends)
+        coriolis = jax.jacrev(lambda d, q, v: motion(d, q, v, jnp.zeros_like(v)))
+        J = jax.vmap(jax.vmap(lambda q, v: coriolis(delta0, q, v)))(*ends)
         top = jnp.abs(V).max(axis=(1, 2))[:, None] + 1e-300
         at_a = jnp.abs(V - V[:, :1]).max(-1) <= _SAME_LEG * top  # (c / G, G)
         at_z = jnp.abs(V - V[:, -1:]).max(-1) <= _SAME_LEG * top
