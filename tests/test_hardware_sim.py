@@ -139,20 +139,22 @@ def test_a_moving_arms_current_is_its_inverse_dynamics(arm_name, tmp_path):
         path = tmp_path / "odd7.xml"
         path.write_text(serial_arm(7, n=5, continuous=(0,)))
         robot = jaxcomp.load_robot(str(path))
-    n = len(arm_joint_names(robot))
+    n, idx = len(arm_joint_names(robot)), arm_joint_indices(robot)
+    moved = robot.tree.moves[idx].any(axis=0)  # the links the arm joints move
+    links = [k for k, m in zip(robot.link_names, moved, strict=True) if m]
     rng = np.random.default_rng(1)
     truth = TrueRobot(
         RobotParams(
             robot.name,
             rng.uniform(0.3, 2.0, n),
             np.zeros(n),
-            {k: rng.uniform(-0.004, 0.004, 3) for k in robot.link_names[:n]},
+            {k: rng.uniform(-0.004, 0.004, 3) for k in links},
             joints=arm_joint_names(robot),
         ),
         current_noise=0.0,
     )
     sim = Simulator(robot, truth, initial_pose="zero")
-    arm, idx = sim.arm, arm_joint_indices(robot)
+    arm = sim.arm
     q0 = arm.read().q
     phase = rng.uniform(0, 2 * np.pi, n)
     swing = lambda t: 0.2 * (np.sin(2 * np.pi * 0.5 * t + phase) - np.sin(phase))  # noqa: E731
