@@ -1,7 +1,8 @@
 """Identification of current/torque ratios, friction losses and centre-of-mass errors.
 
 - ``plan``: calibration plans (sweeps, holds, speeds) and their JSON file;
-- ``plan_design``: the paper's plan, its held poses chosen on the robot's model;
+- ``plan_checks``: what the robot's model finds wrong with a plan (load, floor, self-contact);
+  ``plan_design``: the paper's plan, its held poses chosen on the robot's model;
 - ``random_plans``: seeded random plans, to validate the fit on plans it was not tuned on;
   ``named_plans``: plans by name (default, short, random, random:K, a JSON file);
 - ``recorder``: recording a plan on an ``Arm`` into a recording (``jaxcomp.recording``);
