@@ -10,7 +10,7 @@ g_true: ``identify.evaluate.gravity_torque_at``, the JAX gravity model with the 
 offsets; generated on the device, not timed). Then, timed separately:
 
 - moments: each recording reduced to its sweep moments on the host
-  (``identify.moments.sweep_moments_batch``, vectorized over the recordings of a block,
+  (``identify.sweep_reduction.sweep_moments_batch``, vectorized over the recordings of a block,
   blocks spread over ``--workers`` threads: numpy releases the GIL);
 - fits: ``identify.jax_fit.fit_batch`` of all recordings from their moments on the device, in
   batches of ``--batch`` (default all), compile time apart; best of ``--repeats``.
@@ -42,8 +42,9 @@ from jaxcomp.current import sweep_current
 from jaxcomp.hardware.mjx import batch_mesh
 from jaxcomp.identify.evaluate import gravity_torque_at
 from jaxcomp.identify.jax_fit import fit_batch, fit_model
-from jaxcomp.identify.moments import stack_worlds, sweep_moments_batch
+from jaxcomp.identify.moments import stack_worlds
 from jaxcomp.identify.named_plans import named_plan
+from jaxcomp.identify.sweep_reduction import sweep_moments_batch
 from jaxcomp.studies.plan_signal import plan_signal, start_pose
 from jaxcomp.studies.truth_draw import TruthSpread, draw_truth
 

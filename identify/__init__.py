@@ -1,12 +1,16 @@
 """Identification of current/torque ratios, friction losses and centre-of-mass errors.
 
 - ``plan``: calibration plans (sweeps, holds, speeds) and their JSON file;
-- ``plan_design``: the paper's plan, its held poses chosen on the robot's model;
+- ``plan_checks``: what the robot's model finds wrong with a plan (load, floor, self-contact);
+  ``plan_design``: the paper's plan, its held poses chosen on the robot's model;
 - ``random_plans``: seeded random plans, to validate the fit on plans it was not tuned on;
   ``named_plans``: plans by name (default, short, random, random:K, a JSON file);
 - ``recorder``: recording a plan on an ``Arm`` into a recording (``jaxcomp.recording``);
-- ``bins``: the steady samples of a sweep and their angle-bin means;
-- ``moments``: sweep moments, a recording reduced exactly for the joint fit;
+- ``steady``: the steady-sample rule (which samples of a sweep pass enter the fit);
+- ``bins``: a recording's steady samples and their angle-bin means;
+- ``moments``: sweep moments, a recording reduced exactly for the joint fit; ``packing``: the
+  sweep samples laid out for the reduction; ``sweep_reduction``: the JAX reduction of packed
+  samples to moments; ``streaming``: moments summed sample by sample during a simulation;
 - ``jax_fit``: the joint JAX fit; ``baseline``: the paper's fit (scipy, pinocchio);
 - ``traced``: traced programs kept on disk between processes (``jax.export``);
 - ``evaluate``: errors of fitted params against a known truth; ``plots``: calibration plots.

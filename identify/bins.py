@@ -4,8 +4,8 @@ Within a sweep the swept joint moves at constant speed and the others are held, 
 measured current is a function of the swept angle and the direction only. Averaging the samples
 of each (sweep, direction, angle bin) keeps all the information a least-squares fit uses (each
 bin weighs as its sample count) while the fit's cost no longer grows with the sample count.
-Only steady-speed samples enter: the ramps at the ends of a sweep (acceleration, inertia) are
-left out.
+Only steady-speed samples enter (``steady``, by ``identify.steady``'s rule): the ramps at the
+ends of a sweep (acceleration, inertia) are left out.
 """
 
 from __future__ import annotations
@@ -15,25 +15,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from jaxcomp.errors import InputError
+from jaxcomp.identify.steady import (
+    MEDIAN_STRIDE,
+    STEADY_FRACTION,
+    STEADY_SETTLE,
+    STEADY_TRIM,
+    at_speed,
+    in_window,
+)
 from jaxcomp.recording import Recording
 
 #: Default bin width, rad (1 degree).
 BIN_WIDTH = np.deg2rad(1.0)
-#: A sample is steady when its swept-joint speed is within (1 - STEADY_FRACTION) of its pass's
-#: speed, either side (ramps, overshoot and ringing stay out).
-STEADY_FRACTION = 0.98
-#: Steady samples closer than this (s) to the last of their pass are left out.
-STEADY_TRIM = 0.05
-#: Steady samples closer than this (s) to the first of their pass are left out: after the
-#: acceleration ramp the servo rings (the Gen3's base joint at 35 deg/s: the current 40 % low
-#: over the first 0.1 s, 12 % high over the next, settled after about 0.3 s).
-STEADY_SETTLE = 0.3
-#: Passes whose cruise is shorter than this (s) cannot spare ``STEADY_SETTLE``: they leave out
-#: ``STEADY_TRIM`` at the start too (short test plans; random and default plans' passes are
-#: longer).
-SETTLE_CRUISE = 1.5
-#: Medians over a pass (its speed; see ``steady``) take every MEDIAN_STRIDE-th sample of it.
-MEDIAN_STRIDE = 16
 
 
 @dataclass(frozen=True)
@@ -65,6 +58,7 @@ class SweepBins:
 
     @property
     def n_bins(self) -> int:
+        """B, the number of bins."""
         return self.count.shape[0]
 
     @property
@@ -74,10 +68,18 @@ class SweepBins:
 
 
 def sweep_ids(joint: np.ndarray, direction: np.ndarray) -> np.ndarray:
-    """(N,) int: index of the sweep each sample belongs to (-1 outside sweeps).
+    """The sweep each sample belongs to.
 
     A sweep is a contiguous run of one swept joint holding one pass in each direction: a run
     that reverses more than once (several sweeps recorded back to back) is split.
+
+    Args:
+        joint: (N,) int, each sample's swept joint (-1: none), as ``Recording.joint``.
+        direction: (N,) int, each sample's pass direction, +1 / -1, as ``Recording.direction``.
+
+    Returns:
+        (N,) int, the sweep index of each sample, from 0 in recording order (-1 outside
+        sweeps).
     """
     run_start = np.r_[True, joint[1:] != joint[:-1]]
     turn = np.r_[False, direction[1:] != direction[:-1]] & ~run_start
@@ -88,27 +90,31 @@ def sweep_ids(joint: np.ndarray, direction: np.ndarray) -> np.ndarray:
     return np.where(joint >= 0, ids, -1)
 
 
-def settle_time(cruise, settle: float = STEADY_SETTLE, trim: float = STEADY_TRIM, xp=np):
-    """s left out at the start of a pass whose cruise lasts ``cruise`` s (array or float):
-    ``settle``, or ``trim`` when the cruise is shorter than ``SETTLE_CRUISE``. ``xp``: numpy
-    or jax.numpy."""
-    return xp.where(cruise >= SETTLE_CRUISE, settle, trim)
-
-
 def steady(
     rec: Recording,
     fraction: float = STEADY_FRACTION,
     trim: float = STEADY_TRIM,
     settle: float = STEADY_SETTLE,
 ) -> np.ndarray:
-    """(N,) bool: the constant-speed samples of every sweep pass.
+    """The constant-speed samples of every sweep pass of a recording (``identify.steady``).
 
     A sample is steady when its swept joint moves in the pass's direction at a speed within
-    (1 - ``fraction``) of the pass speed, either side (the pass speed: the mean speed of the
-    samples at >= ``fraction`` of the median speed of every ``MEDIAN_STRIDE``-th sample of the
-    pass; the median alone may fall on a ramp when a pass has few samples), and
-    it lies more than ``settle_time`` s after the first such sample (the servo still rings
-    there) and more than ``trim`` s before the last.
+    (1 - ``fraction``) of the pass speed, either side (``at_speed``; the pass speed: the mean
+    speed of the samples at >= ``fraction`` of the median speed of every ``MEDIAN_STRIDE``-th
+    sample of the pass; the median alone may fall on a ramp when a pass has few samples), and
+    it lies in the pass's steady window (``in_window``: more than ``settle_time`` s after the
+    first such sample, the servo still rings there, and more than ``trim`` s before the last).
+
+    Args:
+        rec: the recording (N samples).
+        fraction: the steady fraction of the pass speed.
+        trim: s, left out before a pass's last sample at speed (and after its first, on a
+            cruise shorter than ``SETTLE_CRUISE``).
+        settle: s, left out after the first sample at speed of a cruise of
+            ``SETTLE_CRUISE`` s or more.
+
+    Returns:
+        (N,) bool, True at the steady samples.
     """
     ids = sweep_ids(rec.joint, rec.direction)
     swept = np.flatnonzero(ids >= 0)
@@ -124,11 +130,10 @@ def steady(
         if median <= 0:
             continue
         ref = speed[part][speed[part] >= fraction * median].mean()
-        fast = part[np.abs(speed[part] - ref) <= (1.0 - fraction) * ref]
+        fast = part[at_speed(speed[part], ref, fraction)]
         if fast.size == 0:
             continue
-        start = settle_time(t[fast[-1]] - t[fast[0]], settle, trim)
-        inside = (t[fast] > t[fast[0]] + start) & (t[fast] < t[fast[-1]] - trim)
+        inside = in_window(t[fast], t[fast[0]], t[fast[-1]], settle, trim)
         keep[swept[fast[inside]]] = True
     return keep
 
@@ -136,7 +141,19 @@ def steady(
 def bin_sweeps(
     rec: Recording, width: float = BIN_WIDTH, fraction: float = STEADY_FRACTION
 ) -> SweepBins:
-    """Average the steady samples of ``rec`` into angle bins of ``width`` rad."""
+    """Average the steady samples of ``rec`` into angle bins.
+
+    Args:
+        rec: the recording.
+        width: rad, the bin width (> 0).
+        fraction: the steady fraction of the pass speed (``steady``).
+
+    Returns:
+        The ``SweepBins`` of its steady samples.
+
+    Raises:
+        InputError: ``width`` is not > 0, or the recording has no steady sweep sample.
+    """
     if not width > 0:
         raise InputError(f"bin width must be > 0 rad, got {width}")
     keep = steady(rec, fraction)

@@ -77,17 +77,10 @@ from tqdm.auto import tqdm
 from jaxcomp import current, dynamics
 from jaxcomp.errors import InputError, JaxcompError
 from jaxcomp.identify import traced
-from jaxcomp.identify.bins import STEADY_FRACTION, STEADY_TRIM
-from jaxcomp.identify.moments import (
-    PackBuffer,
-    Packed,
-    SweepMoments,
-    on_cpu,
-    pack,
-    reduce_batch,
-    sweep_moments,
-    z_index,
-)
+from jaxcomp.identify.moments import SweepMoments, z_index
+from jaxcomp.identify.packing import PackBuffer, Packed, pack
+from jaxcomp.identify.steady import STEADY_FRACTION, STEADY_TRIM
+from jaxcomp.identify.sweep_reduction import on_cpu, reduce_batch, sweep_moments
 from jaxcomp.identify.transfers import (
     TransferBins,
     bucket,

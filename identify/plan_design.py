@@ -4,18 +4,17 @@
 any arm: for each current-controlled joint it searches held poses (every other joint at -90,
 -45, 0, 45 or 90 deg, within its limits) where gravity has a large lever on the swept joint
 over -100..+100 deg (within the joint's limits less a margin), rejects poses that overload an
-actuator, reach the mounting surface or make the robot touch itself, and picks about three per
-joint that excite every link's centre of mass in different directions (a greedy D-optimal
-design). Its options are one frozen ``PlanOptions``; the plan is kept on the robot per options
-(``Robot.cached``): the search takes seconds (about 15-30 s for a 7-joint arm).
-
-``plan_issues(robot, plan)`` runs the same model checks on any plan (``identify.plan``).
+actuator, reach the mounting surface or make the robot touch itself (``identify.plan_checks``'
+model), and picks about three per joint that excite every link's centre of mass in different
+directions (a greedy D-optimal design). Its options are one frozen ``PlanOptions``; the plan
+is kept on the robot per options (``Robot.cached``): the search takes seconds (about 15-30 s
+for a 7-joint arm). ``inner_limits`` and ``sweep_window`` place a sweep within a joint's
+limits (random plans use them too).
 Units: rad, rad/s, s, m, N m.
 """
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import itertools
 import math
@@ -23,11 +22,8 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import jax
-import jax.numpy as jnp
-import mujoco
 import numpy as np
 
-from jaxcomp import dynamics
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
 from jaxcomp.identify.plan import (
@@ -42,289 +38,24 @@ from jaxcomp.identify.plan import (
     Sweep,
     arm_pose,
 )
+from jaxcomp.identify.plan_checks import CHECK_STEP, SERVO_RAMP_FACTOR, PlanModel
 from jaxcomp.poses import LIMIT_MARGIN as POSE_MARGIN
 from jaxcomp.robot import Robot, load_robot
-from jaxcomp.robot_params import RobotParams, arm_joint_indices
 
-# --------------------------------------------------------------------- the model's checks
-#: Design constants: current noise (A) and prior COM uncertainty (m) weighing the
-#: centre-of-mass information of a sweep; the angle step of the model's checks (rad); the
-#: batch of the jitted evaluations; contact distance (m) below which two geoms touch.
-_NOISE = 0.05
+#: m, the prior uncertainty of each link's centre of mass weighing the design's information.
 _PRIOR_COM = 0.01
-_STEP = math.radians(5.0)
-_CHUNK = 4096
-_CONTACT = 0.005
-#: Rounding allowance: a point's floor lies this far (m) below its height at the idle pose,
-#: where that is below the floor; the batched pre-check refuses only poses this far (m, and
-#: fraction of a load limit) beyond a limit.
-_SLACK = 1e-6
-#: A position servo that lags and catches up asks up to about this times the commanded ramp
-#: acceleration (the simulator's asks 1.3x): the load checks use it.
-_SERVO = 1.5
 
 
-class _Model:
-    """The model's view of arm poses: gravity, COM sensitivity, load, floor and self-contact.
+def inner_limits(limits: np.ndarray) -> np.ndarray:
+    """Joint limits less a margin: ``jaxcomp.poses.LIMIT_MARGIN`` of each range, at least
+    ``LIMIT_MARGIN`` (1 deg, the ``Arm``'s); infinite limits stay infinite.
 
     Args:
-        robot: the robot; gravity: (3,) m/s^2, base frame (None: the model's).
-        effort_fraction: |g| may reach this fraction of each effort limit.
-        floor: m, the lowest z (base frame) a link origin, geom centre or site may reach.
+        limits: (n, 2) rad, lower and upper limits.
+
+    Returns:
+        (n, 2) rad, the inner limits.
     """
-
-    def __init__(
-        self, robot: Robot, gravity: Sequence[float] | None, effort_fraction: float, floor: float
-    ):
-        self.robot = robot
-        self.arm = arm = arm_joint_indices(robot)
-        self.n = len(arm)
-        self.effort_fraction = float(effort_fraction)
-        self.floor = float(floor)
-        tree = robot.tree
-        g = robot.default_gravity if gravity is None else np.asarray(gravity, float)
-        if g.shape != (3,) or not np.all(np.isfinite(g)) or not 1 < np.linalg.norm(g) < 30:
-            raise InputError(f"gravity must be (3,) m/s^2 with a norm near 9.81, got {g}")
-        self.g = g
-        idx = jnp.asarray(arm)
-        gvec = jnp.asarray(g)
-
-        def gravity_arm(qa):
-            q = jnp.zeros(tree.nv, qa.dtype).at[idx].set(qa)
-            return dynamics.gravity(tree, q, None, gvec)[idx]
-
-        self._gravity = jax.jit(jax.vmap(gravity_arm))
-        self.effort = robot.effort_limits[arm]
-        self.weight = (RobotParams.nominal(robot).ratio / _NOISE) ** 2  # 1/(N m)^2 per sample
-        # the collision model: every geom collides, contacts reported within _CONTACT
-        m = copy.deepcopy(robot.model)
-        m.geom_contype[:] = 1
-        m.geom_conaffinity[:] = 1
-        m.geom_margin[:] = _CONTACT
-        m.opt.disableflags &= ~int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
-        self.model, self.data = m, mujoco.MjData(m)
-        self.qadr = m.jnt_qposadr[arm]
-        moved = tree.moves[arm].any(axis=0)
-        ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, b) for b in tree.body_names]
-        self.moved_body = np.zeros(m.nbody, bool)
-        self.moved_body[[i for i, mv in zip(ids, moved, strict=True) if mv]] = True
-        self.moved_geom = self.moved_body[m.geom_bodyid]
-        self.moved_site = self.moved_body[m.site_bodyid]
-        self.ignored: set[tuple[int, int]] = set()
-        # touching at the zero pose (zeros moved inside the limits): the construction
-        self.zero = arm_pose(robot, "zero")
-        self.ignored = self._contacts(self.zero)
-        self.axes0 = self.data.xaxis[arm].copy()  # (n, 3) world joint axes at the zero pose
-        self._points(robot)
-        # COM sensitivity: g_j = -(axis_j x sum_b m_b (p_b + R_b c_b - anchor_j)) . g, so
-        # d g_j / d c_b = -m_b R_b^T (g x axis_j) for every body b that hinge j moves
-        self.body_ids = np.array(ids)
-        self.mass = np.asarray(tree.nominal.mass)
-        self.moves = tree.moves[arm] & tree.is_hinge[arm][:, None]  # (n, nb)
-        self.dofs = m.jnt_dofadr[arm]
-        m.opt.gravity[:] = g
-        self._bias, self._accel, self._inertial = np.zeros(m.nv), np.zeros(m.nv), np.zeros(m.nv)
-        self._prechecks(tree)
-
-    def _points(self, robot: Robot) -> None:
-        """The points the floor check watches: origins of the moved bodies, centres of their
-        geoms, their sites; each with its floor (m): ``floor``, or its height at the idle pose
-        where that is lower (parts at the base that sit below the floor by construction)."""
-        m, d = self.model, self.data
-        body = np.flatnonzero(self.moved_body)
-        geom = np.flatnonzero(self.moved_geom)
-        site = np.flatnonzero(self.moved_site)
-        # tree body index (MuJoCo's less the world) and position in that body's frame
-        self.point_body = np.concatenate([body, m.geom_bodyid[geom], m.site_bodyid[site]]) - 1
-        self.point_local = np.concatenate(
-            [np.zeros((len(body), 3)), m.geom_pos[geom], m.site_pos[site]]
-        ).reshape(-1, 3)
-        self._point_ids = (body, geom, site)
-        d.qpos[self.qadr] = arm_pose(robot)
-        mujoco.mj_kinematics(m, d)
-        self.point_floor = np.minimum(self.floor, self._point_z() - _SLACK)
-
-    def _prechecks(self, tree) -> None:
-        """The batched, approximate ``problem`` (no contacts): ``surely_bad``."""
-        point_body, point_local = jnp.asarray(self.point_body), jnp.asarray(self.point_local)
-        idx, gvec = jnp.asarray(self.arm), jnp.asarray(self.g)
-        limit = jnp.asarray(self.effort_fraction * self.effort)
-
-        def excess(qa, accel):  # m below the floors, and the load over its limit (fraction)
-            q = jnp.zeros(tree.nv, qa.dtype).at[idx].set(qa)
-            frames = dynamics.forward_kinematics(tree, q)
-            rot, pos = frames.rot[point_body], frames.pos[point_body]
-            z = pos[:, 2] + jnp.einsum("pj,pj->p", rot[:, 2], point_local)
-            load = jnp.abs(dynamics.gravity(tree, q, None, gvec)[idx])
-            load = load + jnp.abs(dynamics.mass_matrix(tree, q)[idx][:, idx] @ accel)
-            return jnp.max(self.point_floor - z, initial=-jnp.inf), jnp.max(load / limit) - 1
-
-        self._excess = jax.jit(jax.vmap(excess, in_axes=(0, None)))
-
-    def _point_z(self) -> np.ndarray:
-        """(P,) m: heights of the watched points in ``self.data`` (after ``mj_kinematics``)."""
-        d = self.data
-        body, geom, site = self._point_ids
-        return np.concatenate([d.xpos[body, 2], d.geom_xpos[geom, 2], d.site_xpos[site, 2]])
-
-    def _batched(self, fn, q: np.ndarray, *args) -> list[np.ndarray]:
-        """``fn(q, *args)`` over arm poses q (B, n) rad in fixed batches (one compilation):
-        its outputs, each (B, ...)."""
-        q = np.asarray(q, float).reshape(-1, self.n)
-        out = []
-        for k in range(0, len(q), _CHUNK):
-            chunk = q[k : k + _CHUNK]
-            pad = np.zeros((_CHUNK, self.n))
-            pad[: len(chunk)] = chunk
-            res = fn(jnp.asarray(pad), *args)
-            res = res if isinstance(res, tuple) else (res,)
-            out.append([np.asarray(r)[: len(chunk)] for r in res])
-        return [np.concatenate(parts) for parts in zip(*out, strict=True)]
-
-    def surely_bad(self, q: np.ndarray, accel: np.ndarray) -> np.ndarray:
-        """(B,) bool at arm poses q (B, n) rad: a watched point lies more than ``_SLACK`` m
-        below its floor, or the load of gravity and ``accel`` (n,) rad/s^2 exceeds the effort
-        fraction by more than ``_SLACK`` of it. ``problem`` (exact, and contacts) refuses
-        these poses; the check is batched on the device, for the search to skip them."""
-        below, over = self._batched(self._excess, q, jnp.asarray(accel, float))
-        return (below > _SLACK) | (over > _SLACK)
-
-    def gravity(self, q: np.ndarray) -> np.ndarray:
-        """(B, n) N m: gravity torques at arm poses q (B, n) rad."""
-        return self._batched(self._gravity, q)[0]
-
-    def com_rows(self, q: np.ndarray, j: int) -> np.ndarray:
-        """(B, nb * 3) N: d g_j / d COM of every link (link frame, m) at arm poses q (B, n)."""
-        m, d = self.model, self.data
-        rot = np.empty((len(q), len(self.body_ids), 9))
-        axis = np.empty((len(q), 3))
-        jnt = int(self.arm[j])  # MuJoCo joint ids are the tree's joint indices
-        for k, qa in enumerate(q):
-            d.qpos[self.qadr] = qa
-            mujoco.mj_kinematics(m, d)
-            rot[k] = d.xmat[self.body_ids]
-            axis[k] = d.xaxis[jnt]
-        lever = np.cross(self.g, axis)  # (B, 3)
-        rot = rot.reshape(len(q), -1, 3, 3)
-        rows = -np.einsum("b,Bbki,Bk->Bbi", self.mass * self.moves[j], rot, lever)
-        return rows.reshape(len(q), -1)
-
-    def overload(self, g: np.ndarray) -> np.ndarray:
-        """(...,) the largest |g| / (effort_fraction * effort limit) over joints, g (..., n)."""
-        return (np.abs(g) / (self.effort_fraction * self.effort)).max(axis=-1)
-
-    def _contacts(self, qa: np.ndarray) -> set[tuple[int, int]]:
-        m, d = self.model, self.data
-        d.qpos[self.qadr] = qa
-        mujoco.mj_kinematics(m, d)
-        mujoco.mj_collision(m, d)
-        pairs = set()
-        for g1, g2 in zip(d.contact.geom1[: d.ncon], d.contact.geom2[: d.ncon], strict=True):
-            if self.moved_geom[g1] or self.moved_geom[g2]:
-                pairs.add((int(min(g1, g2)), int(max(g1, g2))))
-        return pairs - self.ignored
-
-    def problem(self, qa: np.ndarray, accel: np.ndarray | None = None) -> str | None:
-        """None when the arm pose (n,) rad is admissible, else why not.
-
-        Admissible: no two geoms touch, nothing is below ``floor``, and for every joint
-        |g| + |M accel| (accel (n,) rad/s^2: a ramp's acceleration) stays within
-        ``effort_fraction`` of its effort limit.
-        """
-        m, d = self.model, self.data
-        hit = self._contacts(qa)
-        if hit:
-            names = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in min(hit)]
-            return f"geoms {names[0]} and {names[1]} touch at {_deg(qa)} deg"
-        below = self._point_z() - self.point_floor
-        if below.min(initial=np.inf) < 0:
-            k = int(np.argmin(below))
-            return (
-                f"the arm reaches z = {below[k] + self.point_floor[k]:.3f} m, below "
-                f"{self.point_floor[k]:.3g} m, at {_deg(qa)} deg"
-            )
-        mujoco.mj_comPos(m, d)
-        mujoco.mj_crb(m, d)
-        mujoco.mj_rne(m, d, 0, self._bias)  # g(q): qvel is 0
-        load = np.abs(self._bias[self.dofs])
-        if accel is not None:
-            self._accel[self.dofs] = accel
-            mujoco.mj_mulM(m, d, self._inertial, self._accel)
-            load = load + np.abs(self._inertial[self.dofs])
-        over = load / (self.effort_fraction * self.effort)
-        if over.max() > 1:
-            k = int(np.argmax(over))
-            return (
-                f"joint {k} needs {load[k]:.2f} N m (gravity and ramp), beyond "
-                f"{self.effort_fraction:.0%} of its effort limit {self.effort[k]:g} N m, at "
-                f"{_deg(qa)} deg"
-            )
-        return None
-
-    def path_problem(self, a: np.ndarray, b: np.ndarray, speed: float, ramp: float) -> str | None:
-        """None when ``Arm.move_to`` from a to b (rad) at ``speed`` rad/s with ramps of
-        ``ramp`` s is admissible at every pose of its straight joint-space line (``problem``)."""
-        way = b - a
-        longest = np.abs(way).max()
-        accel = way / longest * (_SERVO * speed / ramp) if longest > 0 else None
-        return next((p for q in _path(a, b) if (p := self.problem(q, accel))), None)
-
-
-def _deg(q: np.ndarray) -> np.ndarray:
-    """A pose for messages: degrees, rounded."""
-    return np.degrees(q).round(0)
-
-
-def _path(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Poses every ``_STEP`` (or closer) on the straight joint-space line a -> b, both ends."""
-    k = max(2, int(np.ceil(np.abs(b - a).max() / _STEP)) + 1)
-    return a + np.linspace(0.0, 1.0, k)[:, None] * (b - a)
-
-
-def plan_issues(
-    robot: Robot | str,
-    plan: CalibrationPlan,
-    start: str | Sequence[float] | None = None,
-    *,
-    gravity: Sequence[float] | None = None,
-    effort_fraction: float = 0.6,
-    floor: float = 0.05,
-) -> list[str]:
-    """What the model finds wrong with recording ``plan``: an empty list when nothing.
-
-    Checks every sweep and every transfer (straight joint-space lines through the ``via``
-    poses, from ``start``, a pose name or (n,) rad, when given) every 5 deg for: a gravity
-    torque beyond ``effort_fraction`` of an actuator's effort limit (the rest is left for
-    friction and acceleration), a link origin, geom centre or site below ``floor`` m (z in the
-    base frame: the mounting surface; a point that the idle pose already puts lower, a part at
-    the base, may not go lower than there), and robot geoms closer than 5 mm to each other
-    (pairs that already touch in the zero pose, ``Robot.pose("zero")``, belong to the
-    construction and are ignored). ``gravity`` (3,) m/s^2 in the base frame (default: the
-    model's).
-    """
-    robot = load_robot(robot)
-    plan.validate(robot)
-    model = _Model(robot, gravity, effort_fraction, floor)
-    issues = []
-    prev = None if start is None else arm_pose(robot, start)
-    for i, s in enumerate(plan.sweeps):
-        legs = [(f"sweep {i}", s.start, s.turn, s.speed)]
-        points = ([] if prev is None else [prev]) + list(s.via) + [s.start]
-        legs[:0] = [
-            (f"transfer to sweep {i}", a, b, plan.move_speed) for a, b in itertools.pairwise(points)
-        ]
-        for what, a, b, speed in legs:
-            problem = model.path_problem(np.asarray(a), np.asarray(b), speed, plan.ramp)
-            if problem:
-                issues.append(f"{what}: {problem}")
-        prev = s.start
-    return issues
-
-
-# --------------------------------------------------------------------- the default plan
-def inner_limits(limits: np.ndarray) -> np.ndarray:
-    """(n, 2) rad: joint limits (n, 2) less a margin of ``jaxcomp.poses.LIMIT_MARGIN`` of each
-    range, at least ``LIMIT_MARGIN`` (1 deg, the ``Arm``'s); infinite limits stay infinite."""
     limits = np.asarray(limits, float)
     span = limits[:, 1] - limits[:, 0]
     margin = np.maximum(np.where(np.isfinite(span), POSE_MARGIN * span, 0.0), LIMIT_MARGIN)
@@ -332,8 +63,17 @@ def inner_limits(limits: np.ndarray) -> np.ndarray:
 
 
 def sweep_window(lower: float, upper: float, lo: float, hi: float) -> tuple[float, float]:
-    """rad: the sweep ``lower``..``upper`` within the limits ``lo``..``hi``: cut at a limit
-    and moved away from it by what it lost there (as far as the other limit allows)."""
+    """A sweep placed within a joint's limits: cut at a limit and moved away from it by what
+    it lost there (as far as the other limit allows).
+
+    Args:
+        lower, upper: rad, the sweep wanted.
+        lo, hi: rad, the joint's (inner) limits.
+
+    Returns:
+        (lower, upper) rad, the sweep within ``lo``..``hi`` (empty, lower >= upper, when the
+        limits leave no range).
+    """
     a, b = max(lower, lo), min(upper, hi)
     if lower < lo:
         b = min(hi, lo + (upper - lower))
@@ -385,7 +125,7 @@ class _Search:
     holds: np.ndarray  # (C, n) rad
     gravity: np.ndarray  # (C, S) N m, the swept joint's
     loaded: np.ndarray  # (C, S) bool: every gravity torque within the effort fraction
-    possible: np.ndarray  # (C, S) bool: not refused for sure (``_Model.surely_bad``)
+    possible: np.ndarray  # (C, S) bool: not refused for sure (``PlanModel.surely_bad``)
     min_len: int  # angle steps a sweep must span
     accel: float  # rad/s^2, the ramps' acceleration
     distance: np.ndarray  # (C,) rad, how far the hold is from the start pose (tie-breaks)
@@ -406,7 +146,7 @@ class _Search:
         q[:, self.joint] = self.angles
         return q
 
-    def check(self, c: int, model: _Model) -> None:
+    def check(self, c: int, model: PlanModel) -> None:
         """Make candidate c's stretch exact: also clear of the floor and of the robot."""
         if self.checked[c]:
             return
@@ -436,7 +176,7 @@ class _Search:
         amp = np.where(m, g, -np.inf).max(axis=1) - np.where(m, g, np.inf).min(axis=1)
         return np.where(m.any(axis=1), amp, 0.0)
 
-    def information(self, cands: np.ndarray, weight: float, model: _Model) -> np.ndarray:
+    def information(self, cands: np.ndarray, weight: float, model: PlanModel) -> np.ndarray:
         """(len(cands), nb * 3, nb * 3) COM information of the sweeps, 1/m^2 (``weight``:
         1/(N m)^2 per checked angle): sum of J^T J, J = d g_swept / d COM."""
         new = [int(c) for c in cands if int(c) not in self.rows]
@@ -600,7 +340,18 @@ def default_plan(
     (the swept joint at its zero-pose angle), and if need be a pose between them (the start,
     the zero pose, another sweep's middle pose; else a sweep's start or turn; else two of
     these).
-    ``gravity`` (3,) m/s^2 in the base frame (default: the model's).
+
+    Args:
+        robot: the robot (name, path or ``Robot``).
+        options: the ``PlanOptions`` (default ``PlanOptions()``; ``gravity`` (3,) m/s^2 in
+            the base frame, None: the model's).
+        **overrides: fields of ``options`` replaced.
+
+    Returns:
+        The validated ``CalibrationPlan``.
+
+    Raises:
+        InputError: an option is out of range, or a joint has no admissible sweep.
     """
     robot = load_robot(robot)
     options = dataclasses.replace(options or PlanOptions(), **overrides)
@@ -615,75 +366,102 @@ def default_plan(
 
 
 def _design(robot: Robot, o: PlanOptions) -> CalibrationPlan:
-    """The search of ``default_plan`` (uncached)."""
-    model = _Model(robot, o.gravity, o.effort_fraction, o.floor)
-    n = model.n
+    """The search of ``default_plan`` (uncached): the candidate holds of every joint, the
+    first hold of each, further holds (D-optimal), the sweeps in order, the transfers' via
+    poses."""
+    model = PlanModel(robot, o.gravity, o.effort_fraction, o.floor)
     if int(o.sweeps_per_joint) < 1:
         raise InputError(f"sweeps_per_joint must be >= 1, got {o.sweeps_per_joint}")
-    inner = inner_limits(robot.joint_limits[model.arm])
     names = [robot.joint_names[a] for a in model.arm]
     home = arm_pose(robot, o.start)
-    # a joint whose axis no other arm joint turns, parallel to gravity, changes no torque
-    tree = robot.tree
-    axes = model.axes0
-    body = tree.joint_body[model.arm]
-    turns = tree.moves[model.arm][:, body] & ~np.eye(n, dtype=bool)  # (k, j): k turns j
-    vertical = np.linalg.norm(np.cross(axes, model.g / np.linalg.norm(model.g)), axis=1) < 1e-9
-    inert = vertical & ~turns.any(axis=0) & tree.is_hinge[model.arm]
-
-    searches: list[_Search] = []
-    for j in range(n):
-        lo, hi = sweep_window(o.lower, o.upper, *inner[j])
-        if not lo < hi:
-            raise InputError(
-                f"joint {j} ({names[j]}): its limits {np.degrees(inner[j]).round(1).tolist()} deg "
-                "(less the margin) leave no range to sweep"
-            )
-        angles = np.linspace(lo, hi, int(np.ceil((hi - lo) / _STEP - 1e-9)) + 1)
-        values = [
-            [float(model.zero[k])]
-            if k == j
-            else [float(home[k])]
-            if inert[k]
-            else sorted({float(np.clip(v, *inner[k])) for v in o.grid})
-            for k in range(n)
-        ]
-        holds = _holds(values, int(o.max_holds), seed=j)
-        poses = np.repeat(holds[:, None, :], len(angles), axis=1)
-        poses[:, :, j] = angles
-        g = model.gravity(poses.reshape(-1, n))
-        C, S = len(holds), len(angles)
-        step = (hi - lo) / (S - 1)
-        loaded = (model.overload(g) <= 1.0).reshape(C, S)
-        accel = np.where(np.arange(n) == j, _SERVO * o.speed / o.ramp, 0.0)
-        possible = ~model.surely_bad(poses.reshape(-1, n), accel).reshape(C, S)
-        mid = int(np.argmin(np.abs(angles - model.zero[j])))
-        min_len = int(math.ceil(min(o.min_span, hi - lo) / step - 1e-9))
-        if not _runs(loaded & possible, min_len, mid)[2].any():  # too weak for min_span: shorter
-            min_len = int(math.ceil(min(o.shortest_span, hi - lo) / step - 1e-9))
-        searches.append(
-            _Search(
-                joint=j,
-                angles=angles,
-                mid=mid,
-                holds=holds,
-                gravity=g[:, j].reshape(C, S),
-                loaded=loaded,
-                possible=possible,
-                min_len=min_len,
-                accel=_SERVO * o.speed / o.ramp,
-                distance=np.abs(np.delete(holds - home, j, axis=1)).max(axis=1),
-            )
-        )
-
-    dim = robot.tree.nb * 3
-    info = np.eye(dim) / _PRIOR_COM**2
+    inner = inner_limits(robot.joint_limits[model.arm])
+    inert = _inert(model)
+    searches = [_search(j, model, o, home, inner, inert, names[j]) for j in range(model.n)]
     # per checked angle: both directions' samples times the per-sample weight
     weight = {
-        s.joint: model.weight[s.joint] * 2 * _STEP / o.speed / CONTROL_PERIOD for s in searches
+        s.joint: model.weight[s.joint] * 2 * CHECK_STEP / o.speed / CONTROL_PERIOD for s in searches
     }
+    info = _first_holds(searches, model, o, weight)
+    _more_holds(searches, model, o, weight, info)
+    sweeps = _ordered_sweeps(searches, model, o, home, names)
+    return CalibrationPlan(
+        tuple(_routed(sweeps, searches, model, o, home)), o.move_speed, o.settle, o.ramp
+    ).validate(robot)
 
-    # the first hold: the largest exact amplitude (the load-only stretch bounds it)
+
+def _inert(model: PlanModel) -> np.ndarray:
+    """(n,) bool: the joints whose axis no other arm joint turns and lies parallel to gravity
+    (they change no gravity torque)."""
+    tree, n = model.robot.tree, model.n
+    body = tree.joint_body[model.arm]
+    turns = tree.moves[model.arm][:, body] & ~np.eye(n, dtype=bool)  # (k, j): k turns j
+    axes = model.axes0
+    vertical = np.linalg.norm(np.cross(axes, model.g / np.linalg.norm(model.g)), axis=1) < 1e-9
+    return vertical & ~turns.any(axis=0) & tree.is_hinge[model.arm]
+
+
+def _search(
+    j: int,
+    model: PlanModel,
+    o: PlanOptions,
+    home: np.ndarray,
+    inner: np.ndarray,
+    inert: np.ndarray,
+    name: str,
+) -> _Search:
+    """The candidate holds of joint j (its name ``name``) and their sweeps' cheap checks
+    (load, pre-checks); ``inner`` (n, 2) rad the joints' ``inner_limits``, ``inert`` (n,)
+    ``_inert``'s."""
+    n = model.n
+    lo, hi = sweep_window(o.lower, o.upper, *inner[j])
+    if not lo < hi:
+        raise InputError(
+            f"joint {j} ({name}): its limits {np.degrees(inner[j]).round(1).tolist()} deg "
+            "(less the margin) leave no range to sweep"
+        )
+    angles = np.linspace(lo, hi, int(np.ceil((hi - lo) / CHECK_STEP - 1e-9)) + 1)
+    values = [
+        [float(model.zero[k])]
+        if k == j
+        else [float(home[k])]
+        if inert[k]
+        else sorted({float(np.clip(v, *inner[k])) for v in o.grid})
+        for k in range(n)
+    ]
+    holds = _holds(values, int(o.max_holds), seed=j)
+    poses = np.repeat(holds[:, None, :], len(angles), axis=1)
+    poses[:, :, j] = angles
+    g = model.gravity(poses.reshape(-1, n))
+    C, S = len(holds), len(angles)
+    step = (hi - lo) / (S - 1)
+    loaded = (model.overload(g) <= 1.0).reshape(C, S)
+    accel = np.where(np.arange(n) == j, SERVO_RAMP_FACTOR * o.speed / o.ramp, 0.0)
+    possible = ~model.surely_bad(poses.reshape(-1, n), accel).reshape(C, S)
+    mid = int(np.argmin(np.abs(angles - model.zero[j])))
+    min_len = int(math.ceil(min(o.min_span, hi - lo) / step - 1e-9))
+    if not _runs(loaded & possible, min_len, mid)[2].any():  # too weak for min_span: shorter
+        min_len = int(math.ceil(min(o.shortest_span, hi - lo) / step - 1e-9))
+    return _Search(
+        joint=j,
+        angles=angles,
+        mid=mid,
+        holds=holds,
+        gravity=g[:, j].reshape(C, S),
+        loaded=loaded,
+        possible=possible,
+        min_len=min_len,
+        accel=SERVO_RAMP_FACTOR * o.speed / o.ramp,
+        distance=np.abs(np.delete(holds - home, j, axis=1)).max(axis=1),
+    )
+
+
+def _first_holds(
+    searches: list[_Search], model: PlanModel, o: PlanOptions, weight: dict[int, float]
+) -> np.ndarray:
+    """Each joint's first hold, the largest exact amplitude (the load-only stretch bounds it),
+    chosen into its search (``weight``: each joint's information weight per checked angle,
+    1/(N m)^2); returns the COM information (nb * 3, nb * 3) 1/m^2: the prior's and theirs."""
+    info = np.eye(model.robot.tree.nb * 3) / _PRIOR_COM**2
     for s in searches:
         every = np.arange(len(s.holds))
         bound = s.amplitude(every)
@@ -698,8 +476,19 @@ def _design(robot: Robot, o: PlanOptions) -> CalibrationPlan:
         if first is not None and s.best >= o.min_amplitude:
             s.chosen.append(first)
             info = info + s.information(np.array([first]), weight[s.joint], model)[0]
+    return info
 
-    # further holds: greedy D-optimal design (the load-only stretch bounds each gain)
+
+def _more_holds(
+    searches: list[_Search],
+    model: PlanModel,
+    o: PlanOptions,
+    weight: dict[int, float],
+    info: np.ndarray,
+) -> None:
+    """Further holds, a greedy D-optimal design in turns over the joints (the load-only
+    stretch bounds each gain), chosen into the searches; ``info`` the COM information of the
+    holds chosen so far."""
     for _ in range(int(o.sweeps_per_joint) - 1):
         for s in searches:
             if not s.chosen:
@@ -719,26 +508,17 @@ def _design(robot: Robot, o: PlanOptions) -> CalibrationPlan:
                 keep = s.amplitude(cands) >= o.amplitude_fraction * s.best
                 cands = cands[keep]
 
+
+def _ordered_sweeps(
+    searches: list[_Search], model: PlanModel, o: PlanOptions, home: np.ndarray, names: list[str]
+) -> list[Sweep]:
+    """The sweeps of the chosen holds, grouped by joint, each joint's nearest start first (a
+    joint without a hold gets its friction sweep, ``_friction_hold``)."""
     sweeps: list[Sweep] = []
     prev = home
     for s in searches:
-        if not s.chosen:  # friction only: the longest sweep at a hold near the previous one
-            dist = np.abs(np.delete(s.holds - prev, s.joint, axis=1)).max(axis=1)
-            full = len(s.angles) - 1
-            order = np.argsort(dist, kind="stable")
-            for k, c in enumerate(order):  # the 50 nearest, and on until one will do
-                s.check(int(c), model)
-                if s.valid[c] and (s.last[c] - s.first[c] == full or k >= 49):
-                    break
-            span = np.where(s.valid & s.checked, s.last - s.first, -1)
-            if span.max() < 0:
-                step = math.degrees(s.angles[1] - s.angles[0])
-                raise InputError(
-                    f"joint {s.joint} ({names[s.joint]}): no held pose gives it a sweep of "
-                    f"{s.min_len * step:.0f} deg through {math.degrees(s.angles[s.mid]):.0f} deg, "
-                    "clear of the floor, of the robot itself and of the effort limits"
-                )
-            s.chosen.append(int(_best(span.astype(float), dist, 0.5)[0]))
+        if not s.chosen:
+            s.chosen.append(_friction_hold(s, model, prev, names))
         speeds = [
             o.speed if k != 1 or o.slow_speed is None else o.slow_speed
             for k in range(len(s.chosen))
@@ -748,9 +528,40 @@ def _design(robot: Robot, o: PlanOptions) -> CalibrationPlan:
             sweep = todo.pop(int(np.argmin([np.abs(t.start - prev).max() for t in todo])))
             sweeps.append(sweep)
             prev = sweep.start
+    return sweeps
 
-    # transfers: straight, else through both sweeps' middle poses (and one pose between:
-    # home, zero, a sweep's middle pose; else a sweep's start or turn; else two of these)
+
+def _friction_hold(s: _Search, model: PlanModel, prev: np.ndarray, names: list[str]) -> int:
+    """The hold of a joint gravity does not excite (friction only): its longest sweep at a
+    hold near the previous sweep's start ``prev`` (n,) rad."""
+    dist = np.abs(np.delete(s.holds - prev, s.joint, axis=1)).max(axis=1)
+    full = len(s.angles) - 1
+    order = np.argsort(dist, kind="stable")
+    for k, c in enumerate(order):  # the 50 nearest, and on until one will do
+        s.check(int(c), model)
+        if s.valid[c] and (s.last[c] - s.first[c] == full or k >= 49):
+            break
+    span = np.where(s.valid & s.checked, s.last - s.first, -1)
+    if span.max() < 0:
+        step = math.degrees(s.angles[1] - s.angles[0])
+        raise InputError(
+            f"joint {s.joint} ({names[s.joint]}): no held pose gives it a sweep of "
+            f"{s.min_len * step:.0f} deg through {math.degrees(s.angles[s.mid]):.0f} deg, "
+            "clear of the floor, of the robot itself and of the effort limits"
+        )
+    return int(_best(span.astype(float), dist, 0.5)[0])
+
+
+def _routed(
+    sweeps: list[Sweep],
+    searches: list[_Search],
+    model: PlanModel,
+    o: PlanOptions,
+    home: np.ndarray,
+) -> list[Sweep]:
+    """The sweeps with the via poses of their transfers: straight, else through both sweeps'
+    middle poses (and one pose between: home, zero, a sweep's middle pose; else a sweep's
+    start or turn; else two of these)."""
     middle = {s.joint: s.angles[s.mid] for s in searches}
     mids = [s.pose(middle[s.joint]) for s in sweeps]
     stops = [home, model.zero] + mids
@@ -767,4 +578,4 @@ def _design(robot: Robot, o: PlanOptions) -> CalibrationPlan:
             via = points[1:]  # plan_issues() tells what is left
         via = [v for k, v in enumerate(via) if np.abs(v - ([a] + via)[k]).max() > 1e-12]
         out.append(Sweep(s.joint, s.hold, s.lower, s.upper, s.speed, tuple(via)))
-    return CalibrationPlan(tuple(out), o.move_speed, o.settle, o.ramp).validate(robot)
+    return out

@@ -1,15 +1,15 @@
 """Random calibration plans: held poses, spans, speeds and swept joints drawn from a seed.
 
-They validate the joint fit on plans it was not tuned on (issue 14). ``random_plan(robot,
-seed)`` sweeps a random subset of at least half the current-controlled joints, each from
-``holds`` (2) held poses, in random order. Each sweep holds the other joints at a pose drawn
-uniformly within the middle ``hold_fraction`` (80 %) of their ranges and moves its joint over
-a random span (``spans``: 90-200 deg, or the joint's whole range if shorter) inside its limits
-less a margin (``plan_design.inner_limits``), at a speed U(10, 40) deg/s. Continuous joints count as
-limited to +-pi. A draw the plan's validation refuses, or (``check``) whose sweep or transfer
-the model refuses (``plan_design.plan_issues``: gravity beyond ``effort_fraction`` of an
-effort limit, the floor, self-contact), is drawn again, up to ``attempts`` times; then the
-whole plan is drawn again (``RESTARTS`` times in all).
+They validate the joint fit on plans it was not tuned on. ``random_plan(robot, seed)`` sweeps
+a random subset of at least half the current-controlled joints, each from ``holds`` (2) held
+poses, in random order. Each sweep holds the other joints at a pose drawn uniformly within the
+middle ``hold_fraction`` (80 %) of their ranges and moves its joint over a random span
+(``spans``: 90-200 deg, or the joint's whole range if shorter) inside its limits less a margin
+(``plan_design.inner_limits``), at a speed U(10, 40) deg/s. Continuous joints count as limited
+to +-pi. A draw the plan's validation refuses, or (``check``) whose sweep or transfer the model
+refuses (``plan_checks.plan_issues``: gravity beyond ``effort_fraction`` of an effort limit, the
+floor, self-contact), is drawn again, up to ``attempts`` times; then the whole plan is drawn
+again (``RESTARTS`` times in all).
 
 ``plan_seed(seed, k)`` derives the seed of the k-th of several plans from one seed. Units:
 rad, rad/s, s.
@@ -24,7 +24,8 @@ import numpy as np
 
 from jaxcomp.errors import InputError
 from jaxcomp.identify.plan import RAMP, CalibrationPlan, Sweep, arm_pose
-from jaxcomp.identify.plan_design import inner_limits, plan_issues
+from jaxcomp.identify.plan_checks import plan_issues
+from jaxcomp.identify.plan_design import inner_limits
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import arm_joint_indices
 
@@ -49,13 +50,28 @@ PLAN_STREAM = 3
 
 
 def plan_seed(seed: int, k: int) -> int:
-    """The seed of the k-th random plan drawn from ``seed`` (independent streams)."""
+    """The seed of one of several random plans drawn from one seed (independent streams).
+
+    Args:
+        seed: the seed of the plans.
+        k: which plan (>= 0).
+
+    Returns:
+        The k-th plan's seed, a 64-bit int.
+    """
     state = np.random.SeedSequence([int(seed), PLAN_STREAM, int(k)]).generate_state(2, np.uint32)
     return int(state[0]) << 32 | int(state[1])
 
 
 def plan_limits(robot: Robot) -> np.ndarray:
-    """(n, 2) rad: the current-controlled joints' limits, continuous ones clamped to +-pi."""
+    """The limits random plans sweep within.
+
+    Args:
+        robot: the robot.
+
+    Returns:
+        (n, 2) rad, the current-controlled joints' limits, continuous ones clamped to +-pi.
+    """
     return np.clip(robot.joint_limits[arm_joint_indices(robot)], -math.pi, math.pi)
 
 
@@ -98,7 +114,11 @@ def random_plan(
         attempts: draws of each sweep before the plan is drawn again.
         holds: sweeps of each chosen joint, each from its own held pose (>= 1).
 
-    Returns the validated plan; InputError (naming the last problem) when no draw passes.
+    Returns:
+        The validated plan.
+
+    Raises:
+        InputError: an argument is out of range, or no draw passes (naming the last problem).
     """
     robot = load_robot(robot)
     speeds, spans = _range(speeds, "speeds"), _range(spans, "spans")

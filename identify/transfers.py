@@ -29,7 +29,7 @@ the lead joint's travel; a fit evaluates its regressors at each bin's mean pose.
 ``TransferBins`` hold the bins of one recording (or, stacked, of many); ``transfer_bins`` makes
 them from a ``Recording``, ``transfer_plan`` / ``transfer_add`` / ``transfer_finish`` from
 samples streamed on the device, with the cruise decided from the plan's commanded motion (as
-``moments.stream_plan``). Units: rad, rad/s, A, s.
+``streaming.stream_plan``). Units: rad, rad/s, A, s.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcomp.identify.bins import STEADY_FRACTION, STEADY_SETTLE, STEADY_TRIM
+from jaxcomp.identify.steady import CRUISE_TOLERANCE, STEADY_FRACTION, STEADY_SETTLE, STEADY_TRIM
 from jaxcomp.recording import Recording
 
 #: rad/s: a joint slower than this in a transfer bin is left out of it (5 deg/s).
@@ -256,10 +256,8 @@ def transfer_plan(
     """The ``TransferPlan`` of R recorded samples at ``t`` (R,) s, labelled ``joint`` (R,) as a
     ``Recording`` (-1: no sweep), whose commanded pose is ``q_cmd`` (R, n) rad and commanded
     velocity ``dq_cmd`` (R, n) rad/s: a leg's cruise is a run of samples outside sweeps at one
-    nonzero commanded velocity (within ``moments.CRUISE_TOLERANCE`` of its largest
+    nonzero commanded velocity (within ``steady.CRUISE_TOLERANCE`` of its largest
     component), less ``settle`` s at its start and ``trim`` at its end."""
-    from jaxcomp.identify.moments import CRUISE_TOLERANCE
-
     t, q_cmd, dq_cmd = (np.asarray(a, float) for a in (t, q_cmd, dq_cmd))
     R, n = q_cmd.shape
     top = np.abs(dq_cmd).max(axis=1)

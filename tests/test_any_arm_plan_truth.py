@@ -28,7 +28,8 @@ from jaxcomp.hardware.truth import (
     stated_truth,
     truth_centre,
 )
-from jaxcomp.identify.plan_design import default_plan, inner_limits, plan_issues, sweep_window
+from jaxcomp.identify.plan_checks import plan_issues
+from jaxcomp.identify.plan_design import default_plan, inner_limits, sweep_window
 from jaxcomp.robot_params import arm_joint_indices
 
 AXES = {"x": "1 0 0", "y": "0 1 0", "z": "0 0 1"}

@@ -8,18 +8,10 @@ import synthetic
 
 from jaxcomp.errors import InputError
 from jaxcomp.identify.bins import steady, sweep_ids
-from jaxcomp.identify.moments import (
-    PackBuffer,
-    layout,
-    moment_size,
-    pack,
-    packed_moments,
-    stream_add,
-    stream_init,
-    stream_plan,
-    streamed_moments,
-    sweep_moments,
-)
+from jaxcomp.identify.moments import moment_size
+from jaxcomp.identify.packing import PackBuffer, layout, pack
+from jaxcomp.identify.streaming import stream_add, stream_init, stream_plan, streamed_moments
+from jaxcomp.identify.sweep_reduction import packed_moments, sweep_moments
 from jaxcomp.recording import Recording
 
 

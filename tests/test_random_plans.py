@@ -12,7 +12,8 @@ import jaxcomp
 from jaxcomp.errors import InputError
 from jaxcomp.identify.named_plans import check_plan_name, named_plan, plan_count, random_count
 from jaxcomp.identify.plan import LIMIT_MARGIN, arm_pose
-from jaxcomp.identify.plan_design import inner_limits, plan_issues
+from jaxcomp.identify.plan_checks import plan_issues
+from jaxcomp.identify.plan_design import inner_limits
 from jaxcomp.identify.random_plans import HOLDS, plan_limits, plan_seed, random_plan
 from jaxcomp.robot_params import arm_joint_indices
 from jaxcomp.studies.calibration import world_groups

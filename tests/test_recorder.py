@@ -1,4 +1,4 @@
-"""Calibration plans (identify/plan.py, identify/plan_design.py) and recording them
+"""Calibration plans (identify/plan.py, plan_checks.py, plan_design.py) and recording them
 (identify/recorder.py)."""
 
 import json
@@ -23,7 +23,8 @@ from jaxcomp.identify.plan import (
     plan_for_joints,
     plan_from_dict,
 )
-from jaxcomp.identify.plan_design import PlanOptions, default_plan, plan_issues
+from jaxcomp.identify.plan_checks import plan_issues
+from jaxcomp.identify.plan_design import PlanOptions, default_plan
 from jaxcomp.identify.recorder import record
 from jaxcomp.recording import load_recording, recover
 

@@ -9,13 +9,8 @@ import pytest
 from jaxcomp import recording
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import FileError, InputError, JaxcompError
-from jaxcomp.identify.bins import (
-    SETTLE_CRUISE,
-    STEADY_SETTLE,
-    STEADY_TRIM,
-    bin_sweeps,
-    steady,
-)
+from jaxcomp.identify.bins import bin_sweeps, steady
+from jaxcomp.identify.steady import SETTLE_CRUISE, STEADY_SETTLE, STEADY_TRIM
 from jaxcomp.recording import (
     Recording,
     RecordingWriter,

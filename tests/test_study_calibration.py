@@ -33,9 +33,10 @@ from jaxcomp.identify.evaluate import (
     gravity_current_error_batch,
     random_poses,
 )
-from jaxcomp.identify.moments import sweep_moments, world_moments
+from jaxcomp.identify.moments import world_moments
 from jaxcomp.identify.plan import CalibrationPlan, Sweep
 from jaxcomp.identify.random_plans import plan_seed
+from jaxcomp.identify.sweep_reduction import sweep_moments
 from jaxcomp.identify.transfers import transfer_bins
 from jaxcomp.recording import load_recording
 from jaxcomp.robot_params import RobotParams, json_ready

@@ -12,9 +12,9 @@ from odd_arms import serial_arm
 import jaxcomp
 from jaxcomp import dynamics
 from jaxcomp.identify import jax_fit
-from jaxcomp.identify.bins import STEADY_SETTLE, STEADY_TRIM
 from jaxcomp.identify.evaluate import gravity_current_error_batch, random_poses
 from jaxcomp.identify.random_plans import MOVE_SPEED, random_plan
+from jaxcomp.identify.steady import STEADY_SETTLE, STEADY_TRIM
 from jaxcomp.identify.transfers import BIN_ANGLE, MIN_SPEED, bucket, padded_bins, transfer_bins
 from jaxcomp.studies.truth_draw import TruthSpread, draw_truth
 

@@ -23,14 +23,12 @@ import numpy as np
 
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.hardware.mjx import SETTLE_STEPS, BatchTruth, MjxSimulator, Reduction
-from jaxcomp.identify.bins import STEADY_FRACTION
-from jaxcomp.identify.moments import (
+from jaxcomp.identify.moments import SweepMoments, join_sweeps, stack_worlds
+from jaxcomp.identify.packing import layout
+from jaxcomp.identify.steady import STEADY_FRACTION
+from jaxcomp.identify.streaming import (
     StreamPlan,
     StreamSums,
-    SweepMoments,
-    join_sweeps,
-    layout,
-    stack_worlds,
     stream_add,
     stream_init,
     stream_plan,
