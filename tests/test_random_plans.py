@@ -15,7 +15,7 @@ from jaxcomp.identify.plan import LIMIT_MARGIN, arm_pose
 from jaxcomp.identify.plan_design import inner_limits, plan_issues
 from jaxcomp.identify.random_plans import HOLDS, plan_limits, plan_seed, random_plan
 from jaxcomp.robot_params import arm_joint_indices
-from jaxcomp.studies.calibration import world_groups
+from jaxcomp.studies.calibration_settings import world_groups
 
 
 @pytest.fixture(scope="module")

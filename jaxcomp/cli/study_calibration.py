@@ -160,12 +160,9 @@ def calibration(
     from jaxcomp.studies.processes import start_processes
 
     processes = start_processes(distributed, coordinator, num_processes, process_id)
-    from jaxcomp.studies.calibration import (
-        CalibrationSettings,
-        TruthSpread,
-        study_into,
-        summary,
-    )
+    from jaxcomp.studies.calibration_outputs import study_into, summary
+    from jaxcomp.studies.calibration_settings import CalibrationSettings
+    from jaxcomp.studies.truth_draw import TruthSpread
 
     settings = CalibrationSettings(
         worlds,

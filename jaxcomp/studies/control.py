@@ -31,7 +31,7 @@ import math
 import platform
 import time
 from pathlib import Path
-from typing import NamedTuple
+from typing import NamedTuple, Unpack
 
 import jax
 import numpy as np
@@ -64,8 +64,8 @@ from jaxcomp.studies.processes import ONE_PROCESS, Processes, together
 from jaxcomp.studies.setup import MODEL, simulator
 from jaxcomp.studies.study_chunks import (
     CHUNK_WORLDS_PER_DEVICE,
-    CHUNKS_DIR,
-    ChunkStore,
+    StudyOptions,
+    chunk_store,
     into_folder,
     run_chunks,
     study_chunks,
@@ -410,9 +410,7 @@ def run_study(
     t_begin = time.perf_counter()
     if folder is None and (processes.count > 1 or resume):
         raise InputError("--resume and --distributed need an output folder")
-    store = None if folder is None else ChunkStore(Path(folder) / CHUNKS_DIR)
-    if resume and store is not None and settings.chunk_worlds is None:  # on any device count
-        settings = dataclasses.replace(settings, chunk_worlds=store.earlier("chunk_worlds"))
+    store, settings = chunk_store(folder, settings, resume)
     study = together(processes, lambda: _setup(settings, robot), "to set the study up")
     chunks = study_chunks([range(int(settings.worlds))], study.settings.chunk_worlds)
     parts = run_chunks(
@@ -536,26 +534,23 @@ class StudyOutputs(NamedTuple):
 
 
 def study_into(
-    out: Path,
-    settings: ControlSettings,
-    *,
-    progress: bool = True,
-    robot: Robot | None = None,
-    resume: bool = False,
-    processes: Processes = ONE_PROCESS,
+    out: Path, settings: ControlSettings, **options: Unpack[StudyOptions]
 ) -> StudyOutputs | None:
-    """``run_study`` written into the folder ``out``, created and locked first
-    (``files.output_folder``: FileError before minutes of simulation): study.json, then the
-    figures (``control_figures.write_figures``); the finished chunks stay in ``out``/chunks
-    until then (``resume``). With several ``processes``, process 0 holds the folder and writes
-    the report; the others write their chunks into it and return None."""
+    """``run_study`` written into one folder (``study_chunks.into_folder``): study.json, then
+    the figures (``control_figures.write_figures``).
 
-    def run(folder: Path) -> dict | None:
-        shown = progress and processes.index == 0
-        return run_study(settings, progress=shown, robot=robot, folder=folder, resume=resume,
-                         processes=processes)  # fmt: skip
+    Args:
+        out: the report folder; the finished chunks stay in ``out``/chunks until the report
+            is written.
+        settings: the study's settings.
+        options: ``StudyOptions`` (progress, robot, resume, processes).
 
-    def write(folder: Path, report: dict) -> StudyOutputs:
-        return StudyOutputs(report, [write_report(report, folder), *write_figures(report, folder)])
+    Returns:
+        The report and the files written (study.json first) on process 0, else None.
+    """
+    return into_folder(out, run_study, settings, _write, **options)
 
-    return into_folder(out, processes, run, write)
+
+def _write(folder: Path, report: dict) -> StudyOutputs:
+    """The ``report`` written into ``folder``: study.json, then the figures."""
+    return StudyOutputs(report, [write_report(report, folder), *write_figures(report, folder)])

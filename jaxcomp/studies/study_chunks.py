@@ -16,11 +16,13 @@ A chunk file holds flat arrays: ``<part>.<name>`` for the parts of ``ChunkStore.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import shutil
 from collections.abc import Callable, Mapping, Sequence
+from functools import partial
 from pathlib import Path
-from typing import Any, NamedTuple, TypeVar
+from typing import TYPE_CHECKING, Any, NamedTuple, TypedDict, TypeVar
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -29,7 +31,10 @@ from jaxcomp.errors import InputError
 from jaxcomp.files import atomic_output, output_folder, reading, writing
 from jaxcomp.recording import setting_differences
 from jaxcomp.robot_params import json_ready, write_json_atomic
-from jaxcomp.studies.processes import Processes, together
+from jaxcomp.studies.processes import ONE_PROCESS, Processes, together
+
+if TYPE_CHECKING:
+    from jaxcomp.robot import Robot
 
 #: The folder of the chunk files inside a study's output folder.
 CHUNKS_DIR = "chunks"
@@ -201,24 +206,87 @@ def run_chunks(
 
 
 R = TypeVar("R")
+S = TypeVar("S")
 T = TypeVar("T")
 
 
+def chunk_store(folder: Path | None, settings: S, resume: bool) -> tuple[ChunkStore | None, S]:
+    """The chunk store of a study's output folder, and the study's settings as resumed.
+
+    Args:
+        folder: the study's output folder (None: the chunks stay in memory).
+        settings: the study's settings, a dataclass with ``chunk_worlds`` (None: the default).
+        resume: the study continues an interrupted run in ``folder``.
+
+    Returns:
+        (``ChunkStore`` of ``folder``/chunks, None without a folder; ``settings``, resumed
+        without a chunk size: with the interrupted run's, whatever the device count).
+    """
+    store = None if folder is None else ChunkStore(Path(folder) / CHUNKS_DIR)
+    if resume and store is not None and settings.chunk_worlds is None:
+        settings = dataclasses.replace(settings, chunk_worlds=store.earlier("chunk_worlds"))
+    return store, settings
+
+
+class StudyOptions(TypedDict, total=False):
+    """How a study runs into its report folder: the keywords of ``into_folder`` and of every
+    study's ``study_into``.
+
+    Attributes:
+        progress: show progress bars (on process 0 only; default True).
+        robot: the studied robot, whose simulator and compiled programs the study keeps
+            (default None: the studies' ``MODEL``, freshly loaded).
+        resume: keep the finished chunks of an interrupted run of the same settings in the
+            folder (default False).
+        processes: this process among the study's (``processes.start_processes``; default
+            ``ONE_PROCESS``): process 0 holds the folder and writes the report, the others
+            write their chunks into it.
+    """
+
+    progress: bool
+    robot: Robot | None
+    resume: bool
+    processes: Processes
+
+
 def into_folder(
-    out: Path, processes: Processes, run: Callable[[Path], R], write: Callable[[Path, R], T]
+    out: Path,
+    run_study: Callable[..., R | None],
+    settings: Any,
+    write: Callable[[Path, R], T],
+    *,
+    progress: bool = True,
+    robot: Robot | None = None,
+    resume: bool = False,
+    processes: Processes = ONE_PROCESS,
 ) -> T | None:
-    """A chunked study ``run(folder)`` into the output folder ``out``: process 0 creates and
-    locks it first (``files.output_folder``: FileError before minutes of simulation), the
-    others wait for it and run their chunks into it; process 0 then writes the outputs
-    (``write(folder, result)``) and removes the chunk files, and returns what ``write`` does
-    (the others None). On error nothing is written but the finished chunks."""
+    """A chunked study run into its report folder: the one call of every study.
+
+    Process 0 creates and locks ``out`` first (``files.output_folder``: FileError before
+    minutes of simulation), the others wait for it and run their chunks into it; process 0
+    then writes the outputs and removes the chunk files. On error nothing is written but the
+    finished chunks (``resume`` keeps them), and a folder it created and left empty is
+    removed.
+
+    Args:
+        out: the study's report folder.
+        run_study: the study's ``run_study(settings, folder=, progress=, robot=, resume=,
+            processes=)``: its result on process 0, None on the others.
+        settings: the study's settings.
+        write: ``write(folder, result)``: the outputs written, what ``into_folder`` returns.
+        progress, robot, resume, processes: ``StudyOptions``.
+
+    Returns:
+        What ``write`` returns on process 0; None on the others.
+    """
     where = "to open the output folder"
+    run = partial(run_study, settings, robot=robot, resume=resume, processes=processes)
     if processes.index != 0:
         together(processes, lambda: None, where)
-        run(Path(out))
+        run(folder=Path(out), progress=False)
         return None
     with contextlib.ExitStack() as stack:
         folder = together(processes, lambda: stack.enter_context(output_folder(out)), where)
-        done = write(folder, run(folder))
+        done = write(folder, run(folder=folder, progress=progress))
         ChunkStore(folder / CHUNKS_DIR).remove()
         return done
