@@ -22,6 +22,8 @@ the command line does, and imports no click. Modules, one concept each:
 - ``calibration``: the calibration study composed (simulate -> reduce -> fit -> report);
 - ``calibration_outputs``: its files, its one call (``study_into``) and its summary;
 - ``control_policy``: the impedance controller as a per-world closed-loop policy;
-- ``control``: the control study (worlds, pushes, references, model errors, the run);
+- ``control_worlds``: the control study's timeline, pushes, references, drawn worlds and
+  model errors;
+- ``control``: the control study (settings, the run, the report, its one call);
 - ``control_figures``: the control study's figures.
 """
