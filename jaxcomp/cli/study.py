@@ -33,7 +33,15 @@ def study() -> None:
 
 def scale_options(command: Callable) -> Callable:
     """The options of a study of any size: its chunks on disk, --resume, and several
-    processes (``jaxcomp.studies.processes``)."""
+    processes (``jaxcomp.studies.processes``).
+
+    Args:
+        command: the study command.
+
+    Returns:
+        It with ``--chunk-worlds``, ``--resume``, ``--distributed``, ``--coordinator``,
+        ``--num-processes`` and ``--process-id``.
+    """
     options = [
         click.option(
             "--chunk-worlds",

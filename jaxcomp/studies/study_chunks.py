@@ -55,9 +55,18 @@ class Chunk(NamedTuple):
 
 
 def study_chunks(groups: Sequence[range], size: int) -> list[Chunk]:
-    """The chunks of at most ``size`` worlds of the contiguous plan ``groups`` (covering the
-    worlds 0..N-1 in order): each group cut from its first world, the last chunk of a group
-    shorter. InputError when ``size`` < 1."""
+    """The chunks of a study's worlds, each group cut from its first world.
+
+    Args:
+        groups: the contiguous plan groups, covering the worlds 0..N-1 in order.
+        size: worlds per chunk at most (``--chunk-worlds``).
+
+    Returns:
+        The chunks in world order, the last chunk of a group shorter.
+
+    Raises:
+        InputError: ``size`` is not an integer >= 1.
+    """
     if isinstance(size, bool) or int(size) != size or size < 1:
         raise InputError(f"--chunk-worlds must be an integer >= 1, got {size}")
     size = int(size)
@@ -67,12 +76,26 @@ def study_chunks(groups: Sequence[range], size: int) -> list[Chunk]:
 
 
 def flatten(parts: Mapping[str, Mapping[str, Any]]) -> dict[str, np.ndarray]:
-    """{part: {name: array}} as the flat {"part.name": array} of a chunk file."""
+    """A chunk's parts as the flat arrays of its file.
+
+    Args:
+        parts: {part: {name: array}}.
+
+    Returns:
+        {"part.name": array}.
+    """
     return {f"{p}.{k}": np.asarray(v) for p, arrays in parts.items() for k, v in arrays.items()}
 
 
 def unflatten(flat: Mapping[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
-    """A chunk file's flat arrays as {part: {name: array}} (``flatten`` undone)."""
+    """A chunk file's flat arrays as its parts (``flatten`` undone).
+
+    Args:
+        flat: {"part.name": array}.
+
+    Returns:
+        {part: {name: array}}.
+    """
     out: dict[str, dict[str, np.ndarray]] = {}
     for key, value in flat.items():
         part, _, name = key.partition(".")
@@ -81,22 +104,43 @@ def unflatten(flat: Mapping[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]
 
 
 class ChunkStore:
-    """The finished chunks of a study in ``folder`` (``OUT/chunks``), see the module
-    docstring. ``prepare`` first (one process), then ``done``/``write``/``read`` per chunk
-    (any process sharing the folder), ``remove`` once the report is written."""
+    """The finished chunks of a study in ``folder``, see the module docstring.
+
+    ``prepare`` first (one process), then ``done``/``write``/``read`` per chunk (any process
+    sharing the folder), ``remove`` once the report is written.
+
+    Args:
+        folder: the chunks' folder, ``OUT/chunks``.
+    """
 
     def __init__(self, folder: Path):
         self.folder = Path(folder)
 
     def path(self, chunk: Chunk) -> Path:
-        """The file of ``chunk``'s results."""
+        """The file of ``chunk``'s results.
+
+        Args:
+            chunk: a chunk of the study.
+
+        Returns:
+            ``folder``/worlds_<first>_<stop>.npz.
+        """
         return self.folder / f"worlds_{chunk.rows.start:09d}_{chunk.rows.stop:09d}.npz"
 
     def prepare(self, settings: Mapping[str, Any], resume: bool) -> int:
-        """Get the folder ready for a study of ``settings`` (JSON-able): with ``resume``, keep
-        the chunk files of an earlier run of the same settings (InputError naming what
-        differs otherwise); without it, refuse a folder that holds an earlier run's chunks
-        (InputError: ``--resume`` continues it). The number of chunk files kept."""
+        """Get the folder ready for a study of ``settings``.
+
+        Args:
+            settings: what the chunks belong to (JSON-able).
+            resume: keep the chunk files of an earlier run of the same settings.
+
+        Returns:
+            The number of chunk files kept.
+
+        Raises:
+            InputError: resumed with other settings (naming what differs), or not resumed
+                in a folder that holds an earlier run's chunks (``--resume`` continues it).
+        """
         stored = self.folder / SETTINGS_FILE
         files = sorted(self.folder.glob("worlds_*.npz")) if self.folder.is_dir() else []
         now = json.loads(json.dumps(json_ready(dict(settings))))
@@ -125,24 +169,56 @@ class ChunkStore:
         return 0
 
     def earlier(self, name: str) -> Any:
-        """Setting ``name`` of the run whose chunks the folder holds (None: none stored)."""
+        """A setting of the run whose chunks the folder holds.
+
+        Args:
+            name: the setting's name (``prepare``'s ``settings``).
+
+        Returns:
+            Its value; None when none is stored.
+        """
         stored = _read_json(self.folder / SETTINGS_FILE)
         return stored.get(name) if isinstance(stored, dict) else None
 
     def done(self, chunk: Chunk) -> bool:
-        """Whether ``chunk``'s results are on disk."""
+        """Whether ``chunk``'s results are on disk.
+
+        Args:
+            chunk: a chunk of the study.
+
+        Returns:
+            True when its file exists.
+        """
         return self.path(chunk).is_file()
 
     def write(self, chunk: Chunk, parts: Mapping[str, Mapping[str, Any]]) -> Path:
-        """Write ``chunk``'s results ({part: {name: array}}) atomically."""
+        """Write ``chunk``'s results atomically.
+
+        Args:
+            chunk: a chunk of the study.
+            parts: its results, {part: {name: array}}.
+
+        Returns:
+            The file written (``path``).
+        """
         path = self.path(chunk)
         with atomic_output(path) as tmp, open(tmp, "wb") as f:
             np.savez(f, **flatten(parts))
         return path
 
     def read(self, chunk: Chunk) -> dict[str, dict[str, np.ndarray]]:
-        """``chunk``'s results as written ({part: {name: array}}); InputError when missing
-        (a process that does not share the folder wrote it elsewhere)."""
+        """``chunk``'s results as written.
+
+        Args:
+            chunk: a chunk of the study.
+
+        Returns:
+            {part: {name: array}}.
+
+        Raises:
+            InputError: its file is missing (a process that does not share the folder wrote
+                it elsewhere).
+        """
         path = self.path(chunk)
         if not path.is_file():
             raise InputError(
@@ -175,10 +251,21 @@ def run_chunks(
     resume: bool,
     progress: bool,
 ) -> list[dict] | None:
-    """Every chunk's parts, in order: each process computes its own chunks (``Processes.mine``;
-    ``compute(chunk)`` -> {part: {name: array}}) into ``store`` (when given: ``settings``
-    checked, ``resume`` keeping the finished ones there) with a progress bar over the worlds;
-    process 0 returns all chunks' parts once every process is done, the others None."""
+    """Every chunk's parts, each process computing its own chunks (``Processes.mine``).
+
+    Args:
+        processes: this process among the study's.
+        chunks: all the study's chunks, in order.
+        store: where the finished chunks go (None: kept in memory, one process).
+        compute: ``compute(chunk)`` -> {part: {name: array}}.
+        settings: what the chunks belong to (``ChunkStore.prepare``).
+        resume: keep the finished chunks in ``store``.
+        progress: show a progress bar over the worlds.
+
+    Returns:
+        All chunks' parts in order on process 0, once every process is done; None on the
+        others.
+    """
     lead = processes.index == 0
     if store is not None:
         together(processes, lambda: lead and store.prepare(settings, resume),
