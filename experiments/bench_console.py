@@ -122,9 +122,9 @@ def with_console(
         page.goto(link.url)
         page.get_by_text("benchmark").first.wait_for(timeout=60_000)
         time.sleep(3.0)  # the page's start-up is over
-        server0 = cpu_seconds(link._proc.pid)
+        server0 = cpu_seconds(link.server_pid)
         run = paced_run(controller, truth, seconds, priority, cpu, RunLink(monitor=link.feed))
-        run["server_cpu_percent"] = 100 * (cpu_seconds(link._proc.pid) - server0) / seconds
+        run["server_cpu_percent"] = 100 * (cpu_seconds(link.server_pid) - server0) / seconds
         time.sleep(1.0)
         live = page.get_by_text("frames dropped").first.inner_text()
         run["page"] = live.splitlines()[0]

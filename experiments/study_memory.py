@@ -16,7 +16,8 @@ from pathlib import Path
 
 import jax
 
-from jaxcomp.studies import calibration as sc
+from jaxcomp.studies.calibration_outputs import study_into, summary
+from jaxcomp.studies.calibration_settings import CalibrationSettings
 
 
 def main() -> None:
@@ -27,14 +28,14 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="study-memory.")) / "study"
-    settings = sc.CalibrationSettings(
+    settings = CalibrationSettings(
         worlds=args.worlds, plan=args.plan, baseline_sample=args.baseline_sample
     )
     t0 = time.perf_counter()
-    report = sc.study_into(out, settings, progress=False).report
+    report = study_into(out, settings, progress=False).report
     wall = time.perf_counter() - t0
     stats = jax.devices()[0].memory_stats() or {}
-    print(sc.summary(report))
+    print(summary(report))
     row = {
         "worlds": args.worlds,
         "device": str(jax.devices()[0]),

@@ -16,7 +16,7 @@ from jaxcomp.identify.plan_checks import plan_issues
 from jaxcomp.identify.plan_design import inner_limits
 from jaxcomp.identify.random_plans import HOLDS, plan_limits, plan_seed, random_plan
 from jaxcomp.robot_params import arm_joint_indices
-from jaxcomp.studies.calibration import world_groups
+from jaxcomp.studies.calibration_settings import world_groups
 
 
 @pytest.fixture(scope="module")

@@ -34,6 +34,7 @@ from jaxcomp.identify.evaluate import (
     random_poses,
 )
 from jaxcomp.identify.moments import world_moments
+from jaxcomp.identify.named_plans import named_plan, short_plan
 from jaxcomp.identify.plan import CalibrationPlan, Sweep
 from jaxcomp.identify.random_plans import plan_seed
 from jaxcomp.identify.sweep_reduction import sweep_moments
@@ -41,12 +42,31 @@ from jaxcomp.identify.transfers import transfer_bins
 from jaxcomp.recording import load_recording
 from jaxcomp.robot_params import RobotParams, json_ready
 from jaxcomp.studies import calibration as sc
+from jaxcomp.studies import calibration_outputs
 from jaxcomp.studies.calibration_estimates import Estimates, jax_truth_vector
+from jaxcomp.studies.calibration_outputs import (
+    FIGURES,
+    STUDY_FILE,
+    WORLDS_FILE,
+    StudyOutputs,
+    study_into,
+    summary,
+    write_outputs,
+)
 from jaxcomp.studies.calibration_report import study_report
+from jaxcomp.studies.calibration_settings import (
+    CalibrationSettings,
+    baseline_worlds,
+    sampled_worlds,
+    world_groups,
+)
 from jaxcomp.studies.calibration_statistics import worst_coverage
-from jaxcomp.studies.plan_recording import signal_plans
+from jaxcomp.studies.plan_recording import signal_plans, simulate
+from jaxcomp.studies.plan_signal import plan_segments, plan_signal, start_pose
 from jaxcomp.studies.processes import CLUSTER_VARIABLES
+from jaxcomp.studies.setup import simulator
 from jaxcomp.studies.study_chunks import ChunkStore, study_chunks
+from jaxcomp.studies.truth_draw import TruthSpread, draw_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 3
@@ -64,7 +84,7 @@ def robot():
 @pytest.fixture(scope="session")
 def tiny_plan(robot, tmp_path_factory):
     """Joints 1-4 of the short plan over +-25 deg (joint 1 from -20 deg): a 14 s plan file."""
-    short = sc.short_plan(robot, speed=math.radians(60), move_speed=math.radians(90))
+    short = short_plan(robot, speed=math.radians(60), move_speed=math.radians(90))
     sweeps = [
         Sweep(s.joint, s.hold, max(s.lower, math.radians(-25)), math.radians(25), s.speed)
         for s in short.sweeps
@@ -122,8 +142,8 @@ def test_worst_coverage_names_the_parameter_whose_std_are_too_small():
 
 
 def test_draw_truth_is_per_world_and_within_its_spread(robot):
-    spread = sc.TruthSpread()
-    big, small = sc.draw_truth(robot, 64, 7, spread), sc.draw_truth(robot, 3, 7, spread)
+    spread = TruthSpread()
+    big, small = draw_truth(robot, 64, 7, spread), draw_truth(robot, 3, 7, spread)
     for f in ("ratio", "friction", "com_offset", "current_noise", "viscous"):
         np.testing.assert_array_equal(getattr(small, f), getattr(big, f)[:3])  # world w: same
     ratio0 = RobotParams.nominal(robot).ratio
@@ -140,19 +160,19 @@ def test_draw_truth_is_per_world_and_within_its_spread(robot):
     assert (torque[:, 2] > paper[2]).any() and (torque[:, 2] < paper[2]).any()
     assert np.abs(big.com_offset).max() <= 0.004 and np.all(big.com_offset[:, 0] == 0)  # base
     assert np.all(big.current_noise == 0.05) and np.all(big.viscous == 0)
-    part = sc.draw_truth(robot, 20, 7, spread, first=30)  # drawn without worlds 0-29
+    part = draw_truth(robot, 20, 7, spread, first=30)  # drawn without worlds 0-29
     for f in ("ratio", "friction", "com_offset", "current_noise", "viscous"):
         np.testing.assert_array_equal(getattr(part, f), getattr(big, f)[30:50])
-    other = sc.draw_truth(robot, 3, 8, spread)
+    other = draw_truth(robot, 3, 8, spread)
     assert not np.allclose(other.ratio, small.ratio)
     with pytest.raises(InputError, match="model-error"):
-        sc.TruthSpread(model_error=(0.4, 0.2))
+        TruthSpread(model_error=(0.4, 0.2))
 
 
 def test_plan_signal_is_what_the_recorder_commands(robot, tiny_plan):
-    plan = sc.named_plan(robot, tiny_plan)
-    start = sc.start_pose(robot)
-    sig = sc.plan_signal(plan, start)
+    plan = named_plan(robot, tiny_plan)
+    start = start_pose(robot)
+    sig = plan_signal(plan, start)
     moves = [Move(t, v, a, s) for _, _, t, v, a, s in plan.moves()]
     np.testing.assert_array_equal(sig.q_ref, reference_trajectory(moves, start))
     assert len(sig.q_ref) == plan.samples(start)
@@ -168,7 +188,7 @@ def test_plan_signal_is_what_the_recorder_commands(robot, tiny_plan):
 def test_batched_gravity_error_and_statistics(robot):
     """The batched gravity-current error is the per-world one; error statistics are right."""
     poses = random_poses(robot, 50, seed=1)
-    truth = sc.draw_truth(robot, 2, 1, sc.TruthSpread())
+    truth = draw_truth(robot, 2, 1, TruthSpread())
     fit_ratio, fit_com = truth.ratio * 1.01, truth.com_offset + 0.001
     got = gravity_current_error_batch(
         robot, truth.ratio, truth.com_offset, fit_ratio, fit_com, poses
@@ -193,7 +213,7 @@ def test_pooled_gravity_error_is_one_number_over_poses_and_joints(robot):
     """The control study's gravity-current error pools the poses and joints of a world: RMS of
     the error over both, relative to the RMS true gravity current over both."""
     poses = random_poses(robot, 20, seed=2)
-    truth = sc.draw_truth(robot, 2, 2, sc.TruthSpread())
+    truth = draw_truth(robot, 2, 2, TruthSpread())
     fit_ratio, fit_com = truth.ratio * 0.98, truth.com_offset - 0.002
     got = gravity_current_error_batch(
         robot, truth.ratio, truth.com_offset, fit_ratio, fit_com, poses, pooled=True
@@ -269,10 +289,8 @@ def test_unwritable_out_dir_is_refused(tmp_path):
 def test_report_files_are_complete_and_valid(study):
     report, arrays, output, out = study
     assert report["fit_com_prior"] == pytest.approx(0.004 / np.sqrt(3))  # the truths' spread
-    assert sorted(p.name for p in out.iterdir()) == sorted(
-        [*sc.FIGURES, "study.json", "worlds.npz"]
-    )
-    for name in sc.FIGURES:
+    assert sorted(p.name for p in out.iterdir()) == sorted([*FIGURES, "study.json", "worlds.npz"])
+    for name in FIGURES:
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert (out / name).stat().st_size > 20_000
     json.loads((out / "study.json").read_text(), parse_constant=pytest.fail)  # no NaN tokens
@@ -294,11 +312,11 @@ def test_report_files_are_complete_and_valid(study):
 @TINY_STUDY
 def test_faulted_worlds_are_counted_per_plan_and_said(study):
     report, arrays, _, _ = study
-    assert report["faulted_by_plan"] == [0] and "faulted" not in sc.summary(report)
+    assert report["faulted_by_plan"] == [0] and "faulted" not in summary(report)
     changed = dict(arrays) | {"fault_step": np.array([-1, 7])}  # world 1 stopped at step 7
     again = study_report(changed, dict(report) | {"world_steps": 1.0})
     assert again["faulted_worlds"] == 1 and again["faulted_by_plan"] == [1]
-    assert "1 of 2 worlds faulted before their plan ended" in sc.summary(again)
+    assert "1 of 2 worlds faulted before their plan ended" in summary(again)
 
 
 @TINY_STUDY
@@ -369,10 +387,10 @@ def test_streamed_moments_fit_as_the_recordings_moments(robot, tiny_plan):
     vmapped fit) against the kept recording reduced on the host (``sweep_moments``,
     ``transfer_bins``: steady samples from the measured speed) and ``jax_fit.fit``: nearly the
     same samples, and fits that agree within their standard errors."""
-    truth = sc.draw_truth(robot, 1, SEED, sc.TruthSpread())
-    signal = sc.plan_signal(sc.named_plan(robot, tiny_plan), sc.start_pose(robot))
-    sim = sc.simulator(None, robot)  # compiled once for the module's runs of 1 world
-    res = sc.simulate(sim, truth, signal, seed=SEED, every=10, world_batch=1, keep=1)
+    truth = draw_truth(robot, 1, SEED, TruthSpread())
+    signal = plan_signal(named_plan(robot, tiny_plan), start_pose(robot))
+    sim = simulator(None, robot)  # compiled once for the module's runs of 1 world
+    res = simulate(sim, truth, signal, seed=SEED, every=10, world_batch=1, keep=1)
     rec = res.recordings[0]
     single, streamed = sweep_moments(rec), world_moments(res.moments, 0)
     np.testing.assert_array_equal(streamed.joint, single.joint)
@@ -419,9 +437,9 @@ def test_the_scipy_sample_takes_the_first_worlds_of_every_plan(seed):
     rng = np.random.default_rng(seed)
     worlds = int(rng.integers(1, 300))
     count = int(rng.integers(1, worlds + 1))
-    groups = sc.world_groups(worlds, count)
+    groups = world_groups(worlds, count)
     for m in (0, 1, count, int(rng.integers(0, worlds + 1)), worlds, worlds + 5):
-        sample = sc.baseline_worlds(groups, m)
+        sample = baseline_worlds(groups, m)
         assert len(sample) == min(m, worlds) and len(set(sample)) == len(sample)
         per = [int(np.count_nonzero((sample >= r.start) & (sample < r.stop))) for r in groups]
         assert max(per) - min(per) <= 1 and per == sorted(per, reverse=True)
@@ -438,7 +456,7 @@ def test_chunks_cover_the_worlds_and_never_straddle_plans(seed):
     them."""
     rng = np.random.default_rng(seed)
     worlds = int(rng.integers(1, 300))
-    groups = sc.world_groups(worlds, int(rng.integers(1, worlds + 1)))
+    groups = world_groups(worlds, int(rng.integers(1, worlds + 1)))
     size = int(rng.integers(1, 40))
     chunks = study_chunks(groups, size)
     assert [c.index for c in chunks] == list(range(len(chunks)))
@@ -446,8 +464,8 @@ def test_chunks_cover_the_worlds_and_never_straddle_plans(seed):
     for c in chunks:
         assert 1 <= len(c.rows) <= size and set(c.rows) <= set(groups[c.group])
         assert c.rows.start == groups[c.group].start or len(chunks[c.index - 1].rows) == size
-    sample = sc.baseline_worlds(groups, int(rng.integers(0, worlds + 1)))
-    sent = sc.sampled_worlds(groups, sample, int(rng.integers(0, worlds + 5)))
+    sample = baseline_worlds(groups, int(rng.integers(0, worlds + 1)))
+    sent = sampled_worlds(groups, sample, int(rng.integers(0, worlds + 5)))
     for rows in groups:
         mine = sent[(sent >= rows.start) & (sent < rows.stop)]
         np.testing.assert_array_equal(mine, np.arange(rows.start, rows.start + len(mine)))
@@ -487,11 +505,11 @@ def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch)
         move_speed=math.radians(90),
     )
     monkeypatch.setattr(named_plans, "random_plan", quick)
-    settings = sc.CalibrationSettings(2, SEED, plan="random:2", baseline_sample=2, poses=100)
-    report, arrays, paths = sc.study_into(tmp_path / "r", settings, progress=False, robot=robot)
-    assert sorted(p.name for p in paths) == sorted([*sc.FIGURES, sc.WORLDS_FILE, sc.STUDY_FILE])
-    json.loads((tmp_path / "r" / sc.STUDY_FILE).read_text(), parse_constant=pytest.fail)
-    start, n = sc.start_pose(robot), 6
+    settings = CalibrationSettings(2, SEED, plan="random:2", baseline_sample=2, poses=100)
+    report, arrays, paths = study_into(tmp_path / "r", settings, progress=False, robot=robot)
+    assert sorted(p.name for p in paths) == sorted([*FIGURES, WORLDS_FILE, STUDY_FILE])
+    json.loads((tmp_path / "r" / STUDY_FILE).read_text(), parse_constant=pytest.fail)
+    start, n = start_pose(robot), 6
     plans = [named_plans.named_plan(robot, "random:2", seed=SEED, group=g) for g in range(2)]
     assert plans[0] != plans[1]
     groups = report["plan"]["groups"]
@@ -505,12 +523,12 @@ def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch)
     # world w has the truth it has under any plan; it recorded its group's plan: the fit
     # determines the friction of the joints that plan sweeps or its transfers move, no other
     model = jax_fit.fit_model(robot)
-    truth = jax_truth_vector(model, sc.draw_truth(robot, 2, SEED, sc.TruthSpread()))
+    truth = jax_truth_vector(model, draw_truth(robot, 2, SEED, TruthSpread()))
     np.testing.assert_array_equal(arrays["truth"][:, : truth.shape[1]], truth)
     only_moved = 0
     for w, plan in enumerate(plans):
         swept = np.isin(np.arange(n), plan.joints)
-        moved = signal_plans(sc.plan_signal(plan, start), 1).transfers.use.any(0)
+        moved = signal_plans(plan_signal(plan, start), 1).transfers.use.any(0)
         np.testing.assert_array_equal(arrays["jax_identified"][w, n : 2 * n], swept | moved)
         only_moved += np.count_nonzero(moved & ~swept)
     assert only_moved > 0
@@ -548,7 +566,7 @@ def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch)
         assert rel[worst["world"], worst["joint"]] == rel[ident].max() > 0
     else:
         assert worst["max_abs_relative"] is None or np.isnan(worst["max_abs_relative"])
-    text = sc.summary(report)
+    text = summary(report)
     assert "random:2 (2 plans, mean" in text and "JAX worse than scipy in" in text
     if ident.any():
         assert f"largest ratio error the JAX fit reports identified ({ident.sum()} ratios)" in text
@@ -556,18 +574,18 @@ def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch)
         assert "no ratio reported identified" in text
 
 
-def _tiny(plan: str, **kw) -> sc.CalibrationSettings:
-    return sc.CalibrationSettings(2, SEED, plan=plan, baseline_sample=2, poses=200, **kw)
+def _tiny(plan: str, **kw) -> CalibrationSettings:
+    return CalibrationSettings(2, SEED, plan=plan, baseline_sample=2, poses=200, **kw)
 
 
 @pytest.fixture(scope="module")
 def whole(study):
     """The tiny study in one chunk (``study``, as its files hold it)."""
     report, arrays, _, _ = study
-    return sc.StudyOutputs(report, arrays, [])
+    return StudyOutputs(report, arrays, [])
 
 
-def _same(a: sc.StudyOutputs, b: sc.StudyOutputs, skip: tuple[str, ...] = ()) -> None:
+def _same(a: StudyOutputs, b: StudyOutputs, skip: tuple[str, ...] = ()) -> None:
     """The same findings (all but run times and ``skip``) and per-world arrays, bit for bit."""
     drop = (*TIMING, *skip)
     assert json_ready({k: v for k, v in a.report.items() if k not in drop}) == json_ready(
@@ -600,29 +618,29 @@ def test_chunked_interrupted_and_resumed_study_is_the_whole_one(
 
     monkeypatch.setattr(sc, "chunk_results", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        sc.study_into(out, settings, progress=False, robot=robot)
+        study_into(out, settings, progress=False, robot=robot)
     assert sorted(p.name for p in (out / "chunks").iterdir()) == [
         "settings.json",
         "worlds_000000000_000000001.npz",
     ]
-    assert not (out / sc.STUDY_FILE).exists()
+    assert not (out / STUDY_FILE).exists()
     with pytest.raises(InputError, match="--resume continues it"):
-        sc.study_into(out, settings, progress=False, robot=robot)
+        study_into(out, settings, progress=False, robot=robot)
     with pytest.raises(InputError, match="every 10 then, 5 now"):
-        sc.study_into(out, _tiny(tiny_plan, chunk_worlds=1, keep_samples=1, every=5),
+        study_into(out, _tiny(tiny_plan, chunk_worlds=1, keep_samples=1, every=5),
                       robot=robot, progress=False, resume=True)  # fmt: skip
     calls.clear()
     unsized = _tiny(tiny_plan, keep_samples=1)
-    resumed = sc.study_into(out, unsized, progress=False, robot=robot, resume=True)
+    resumed = study_into(out, unsized, progress=False, robot=robot, resume=True)
     assert calls == [1]  # the first chunk was kept
     assert resumed.report["chunk_worlds"] == 1 and whole.report["chunk_worlds"] == 2
     _same(whole, resumed, skip=("chunk_worlds",))
     assert sorted(p.name for p in out.iterdir()) == sorted(
-        [*sc.FIGURES, sc.STUDY_FILE, sc.WORLDS_FILE, "samples"]
+        [*FIGURES, STUDY_FILE, WORLDS_FILE, "samples"]
     )
     assert [p.name for p in (out / "samples").iterdir()] == ["world_00000.npz"]
     rec = load_recording(out / "samples" / "world_00000.npz")
-    signal = sc.plan_signal(sc.named_plan(robot, tiny_plan), sc.start_pose(robot))
+    signal = plan_signal(named_plan(robot, tiny_plan), start_pose(robot))
     np.testing.assert_array_equal(rec.joint, signal.joint[::10])
     np.testing.assert_allclose(rec.q, signal.q_ref[::10], atol=0.05)  # it followed the plan
 
@@ -637,9 +655,9 @@ def test_outputs_are_all_or_nothing(study, tmp_path, monkeypatch):
     def broken(*_args, **_kwargs):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(sc, "plot_coverage", broken)
+    monkeypatch.setattr(calibration_outputs, "plot_coverage", broken)
     with pytest.raises(RuntimeError, match="disk full"):
-        sc.write_outputs(out, report, arrays)
+        write_outputs(out, report, arrays)
     assert [p.name for p in out.iterdir()] == ["study.json"]
     assert (out / "study.json").read_text() == "{}"
 
@@ -688,7 +706,7 @@ def test_numbers_do_not_depend_on_the_device_count(tiny_plan, study, tmp_path):
 def uneven_plan(robot):
     """Joints 1-4 of the short plan, joints 2 and 3 over +-8 deg, the others +-25: sweeps of
     uneven lengths, two of which share a lane side by side (``pack_segments``)."""
-    short = sc.short_plan(robot, speed=math.radians(60), move_speed=math.radians(90))
+    short = short_plan(robot, speed=math.radians(60), move_speed=math.radians(90))
     span = {1: 25, 2: 8, 3: 8, 4: 25}
     sweeps = [
         Sweep(
@@ -723,13 +741,13 @@ def test_lanes_hold_every_sweep_once_in_plan_order(arm, seed, tmp_path):
         (tmp_path / "arm.xml").write_text(serial_arm(40 + seed, n=4 + seed, continuous=(0,)))
         arm = str(tmp_path / "arm.xml")
     robot = load_robot(arm)
-    start = sc.start_pose(robot)
-    signal = sc.plan_signal(sc.named_plan(robot, "random:3", seed=seed, group=seed), start)
+    start = start_pose(robot)
+    signal = plan_signal(named_plan(robot, "random:3", seed=seed, group=seed), start)
     every, hold = 10, 500
     transfers = seed != 1
-    seg = sc.plan_segments(signal, start, every, transfers)
+    seg = plan_segments(signal, start, every, transfers)
     lanes = pack_segments(seg, every, hold)
-    full = sc.plan_segments(signal, start, every)
+    full = plan_segments(signal, start, every)
     np.testing.assert_array_equal(seg.sweep_end, full.sweep_end)
     np.testing.assert_array_equal(seg.end, full.end if transfers else full.sweep_end)
     for k, s in enumerate(full.signals):  # the last pass step, relative to the segment
@@ -783,9 +801,9 @@ def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, uneven
     are simulated), the same moments and transfer bins bit for bit."""
     from jaxcomp.studies.plan_signal import pack_segments
 
-    start = sc.start_pose(robot)
-    signal = sc.plan_signal(uneven_plan, start)
-    seg = sc.plan_segments(signal, start, every=10)
+    start = start_pose(robot)
+    signal = plan_signal(uneven_plan, start)
+    seg = plan_segments(signal, start, every=10)
     assert len(seg.begin) == 4 and seg.end[-1] == len(signal.q_ref)
     for k, (a, b, f) in enumerate(zip(seg.begin, seg.end, seg.first, strict=True)):
         np.testing.assert_array_equal(seg.q_ref[a - f : b - f, k], signal.q_ref[a:b])
@@ -796,13 +814,13 @@ def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, uneven
     lanes = pack_segments(seg, 10, 500)
     assert lanes.q_ref.shape[1] == 3  # two sweeps share a lane
 
-    truth = sc.draw_truth(robot, 1, SEED, sc.TruthSpread())
-    sim = sc.simulator(None, robot)
+    truth = draw_truth(robot, 1, SEED, TruthSpread())
+    sim = simulator(None, robot)
     kw = dict(seed=SEED, every=10, world_batch=1)
-    turn = sc.simulate(sim, truth, signal, keep=1, **kw)
-    side = sc.simulate(sim, truth, signal, keep=1, parallel=True, **kw)
+    turn = simulate(sim, truth, signal, keep=1, **kw)
+    side = simulate(sim, truth, signal, keep=1, parallel=True, **kw)
     assert side.world_steps == 3 * (len(lanes.q_ref) + 500)
-    bare = sc.simulate(sim, truth, signal, keep=0, parallel=True, **kw)
+    bare = simulate(sim, truth, signal, keep=0, parallel=True, **kw)
     assert bare.world_steps == side.world_steps and bare.recordings == []
     for a, b in zip(bare.moments + bare.transfers, side.moments + side.transfers, strict=True):
         np.testing.assert_array_equal(a, b)
@@ -865,9 +883,9 @@ def test_two_processes_give_the_one_process_study(whole, tiny_plan, tmp_path):
     for r, (_, stderr) in zip(runs, done, strict=True):
         assert r.returncode == 0, stderr[-3000:]
     assert "process 1: its chunks are done" in done[1][0] and "wrote" in done[0][0]
-    report = json.loads((out / sc.STUDY_FILE).read_text())
-    with np.load(out / sc.WORLDS_FILE) as data:
+    report = json.loads((out / STUDY_FILE).read_text())
+    with np.load(out / WORLDS_FILE) as data:
         arrays = {k: data[k] for k in data.files}
     assert report["processes"] == 2 and whole.report["processes"] == 1
-    _same(whole, sc.StudyOutputs(report, arrays, []), skip=("processes", "chunk_worlds"))
+    _same(whole, StudyOutputs(report, arrays, []), skip=("processes", "chunk_worlds"))
     assert not (out / "chunks").exists()

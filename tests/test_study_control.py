@@ -30,14 +30,14 @@ from jaxcomp.hardware.mjx import (
     PushSchedule,
 )
 from jaxcomp.studies import control as sc
-from jaxcomp.studies.control import (
-    ControlSettings,
+from jaxcomp.studies.control import ControlSettings
+from jaxcomp.studies.control_policy import REFERENCE_COLUMNS, controller_params, impedance_policy
+from jaxcomp.studies.control_worlds import (
     draw_worlds,
     ramped_pushes,
     reference_rows,
     trajectory_for,
 )
-from jaxcomp.studies.control_policy import REFERENCE_COLUMNS, controller_params, impedance_policy
 
 ROBOT = load_robot("gen3_lite")
 GAINS = ImpedanceGains.tracking()

@@ -1,14 +1,25 @@
 """`jaxcomp study`: Monte-Carlo studies over thousands of simulated robots (MJX).
 
-The subcommands live in their own modules and register on the ``study`` group defined here;
-the studies themselves are the library ``jaxcomp.studies``.
+The subcommands live in their own modules and register on the ``study`` group defined here,
+with what every study command shares: its scale options (``scale_options``) and its run into
+the report folder (``run_into``). The studies themselves are the library ``jaxcomp.studies``.
 """
 
+from __future__ import annotations
+
 from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 
 from jaxcomp.cli.group import cli
+from jaxcomp.cli.model_options import joint_names
+
+if TYPE_CHECKING:
+    from jaxcomp.studies.processes import Processes
+
+R = TypeVar("R")
 
 
 @cli.group()
@@ -22,7 +33,15 @@ def study() -> None:
 
 def scale_options(command: Callable) -> Callable:
     """The options of a study of any size: its chunks on disk, --resume, and several
-    processes (``jaxcomp.studies.processes``)."""
+    processes (``jaxcomp.studies.processes``).
+
+    Args:
+        command: the study command.
+
+    Returns:
+        It with ``--chunk-worlds``, ``--resume``, ``--distributed``, ``--coordinator``,
+        ``--num-processes`` and ``--process-id``.
+    """
     options = [
         click.option(
             "--chunk-worlds",
@@ -65,3 +84,42 @@ def scale_options(command: Callable) -> Callable:
     for option in reversed(options):
         command = option(command)
     return command
+
+
+def run_into(
+    study_into: Callable[..., R | None],
+    settings: Any,
+    out_dir: str,
+    *,
+    model: str,
+    joints: str | None,
+    site: str | None,
+    progress: bool,
+    resume: bool,
+    processes: Processes,
+) -> R | None:
+    """The tail every study command shares: the studied robot loaded and the study run into
+    its report folder.
+
+    Args:
+        study_into: the study's one call (``jaxcomp.studies.*.study_into``).
+        settings: the study's settings.
+        out_dir: the report folder (``--out``).
+        model, joints, site: ``--model``, ``--joints``, ``--site`` (``model_options``).
+        progress, resume: ``--progress``, ``--resume``.
+        processes: this process among the study's (``processes.start_processes``).
+
+    Returns:
+        The study's outputs on process 0; None on the others, which say that their chunks are
+        done.
+    """
+    from jaxcomp.robot import load_robot
+
+    robot = load_robot(model, joints=joint_names(joints), site=site)
+    result = study_into(
+        Path(out_dir), settings, progress=progress, robot=robot, resume=resume,
+        processes=processes,
+    )  # fmt: skip
+    if result is None:
+        click.echo(f"process {processes.index}: its chunks are done; process 0 writes the report")
+    return result

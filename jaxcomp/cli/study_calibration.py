@@ -1,15 +1,14 @@
 """`jaxcomp study calibration`: how well calibration finds thousands of simulated true robots.
 
 The options and the printout; the study is ``jaxcomp.studies.calibration`` (imported inside the
-command, so that ``jaxcomp --help`` stays quick).
+command, so that ``jaxcomp --help`` stays quick), its one call ``calibration_outputs.study_into``.
 """
-
-from pathlib import Path
 
 import click
 
-from jaxcomp.cli.model_options import joint_names, model_options
-from jaxcomp.cli.study import scale_options, study
+from jaxcomp.cli.model_options import model_options
+from jaxcomp.cli.shared_options import com_prior_option
+from jaxcomp.cli.study import run_into, scale_options, study
 
 
 @study.command("calibration")
@@ -79,13 +78,10 @@ from jaxcomp.cli.study import scale_options, study
     show_default=True,
     help="True viscous friction U(0, v) N m s/rad per joint.",
 )
-@click.option(
-    "--com-prior",
-    type=click.FloatRange(min=0.0, min_open=True),
-    default=None,
-    help="The JAX fit's prior standard deviation of every link's COM offset per axis, m "
+@com_prior_option(
+    "The JAX fit's prior standard deviation of every link's COM offset per axis, m "
     "(default: the spread the truths are drawn from, --com-offset / sqrt(3); jaxcomp fit's "
-    "default is the model's, 10 % of each link's radius of gyration).",
+    "default is the model's, 10 % of each link's radius of gyration)."
 )
 @click.option(
     "--poses", type=int, default=1000, show_default=True, help="Poses of the gravity error."
@@ -160,12 +156,9 @@ def calibration(
     from jaxcomp.studies.processes import start_processes
 
     processes = start_processes(distributed, coordinator, num_processes, process_id)
-    from jaxcomp.studies.calibration import (
-        CalibrationSettings,
-        TruthSpread,
-        study_into,
-        summary,
-    )
+    from jaxcomp.studies.calibration_outputs import study_into, summary
+    from jaxcomp.studies.calibration_settings import CalibrationSettings
+    from jaxcomp.studies.truth_draw import TruthSpread
 
     settings = CalibrationSettings(
         worlds,
@@ -183,15 +176,8 @@ def calibration(
         chunk_worlds=chunk_worlds,
         keep_samples=keep_samples,
     )
-    from jaxcomp.robot import load_robot
-
-    robot = load_robot(model, joints=joint_names(joints), site=site)
-    result = study_into(
-        Path(out_dir), settings, progress=progress, robot=robot, resume=resume,
-        processes=processes,
-    )  # fmt: skip
-    if result is None:
-        click.echo(f"process {processes.index}: its chunks are done; process 0 writes the report")
-        return
-    click.echo(summary(result.report))
-    click.echo("wrote " + ", ".join(str(p) for p in result.paths))
+    result = run_into(study_into, settings, out_dir, model=model, joints=joints, site=site,
+                      progress=progress, resume=resume, processes=processes)  # fmt: skip
+    if result is not None:
+        click.echo(summary(result.report))
+        click.echo("wrote " + ", ".join(str(p) for p in result.paths))

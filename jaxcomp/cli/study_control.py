@@ -5,12 +5,12 @@ The options and the printout; the study is ``jaxcomp.studies.control`` (imported
 command, so that ``jaxcomp --help`` stays quick).
 """
 
-from pathlib import Path
-
 import click
 
-from jaxcomp.cli.model_options import joint_names, model_options
-from jaxcomp.cli.study import scale_options, study
+from jaxcomp.cli.model_options import model_options
+from jaxcomp.cli.robot_options import gains_option
+from jaxcomp.cli.shared_options import choice_option
+from jaxcomp.cli.study import run_into, scale_options, study
 
 
 @study.command("control")
@@ -27,19 +27,10 @@ from jaxcomp.cli.study import scale_options, study
 )
 @click.option("--passes", type=int, default=2, show_default=True, help="Half-circle passes.")
 @click.option("--force", type=float, default=10.0, show_default=True, help="Push, N.")
-@click.option(
-    "--gains",
-    "preset",
-    type=click.Choice(["tracking", "paper"]),
-    default="tracking",
-    show_default=True,
-    help="Impedance gains preset (see `jaxcomp control --help`).",
-)
-@click.option(
+@gains_option("Impedance gains preset (see `jaxcomp control --help`).")
+@choice_option(
     "--controller",
-    type=click.Choice(["identified", "nominal"]),
-    default="identified",
-    show_default=True,
+    choices=("identified", "nominal"),
     help="identified: the truth perturbed by --params-error and --com-error; nominal: the "
     "model's nominal ratios, no friction compensation, nominal COM.",
 )
@@ -58,12 +49,10 @@ from jaxcomp.cli.study import scale_options, study
     help="COM errors of the controller, m, drawn U(-D, D) per axis of every moving link.",
 )
 @click.option("--noise", type=float, default=0.05, show_default=True, help="Current noise, A.")
-@click.option(
+@choice_option(
     "--push-direction",
     "push",
-    type=click.Choice(["horizontal", "sphere"]),
-    default="horizontal",
-    show_default=True,
+    choices=("horizontal", "sphere"),
     help="Push directions, uniform in the horizontal plane or on the sphere (pushing down "
     "10 N at the home pose overloads joint 1 with the friction compensation).",
 )
@@ -127,14 +116,7 @@ def control(
         devices=devices,
         chunk_worlds=chunk_worlds,
     )
-    from jaxcomp.robot import load_robot
-
-    robot = load_robot(model, joints=joint_names(joints), site=site)
-    result = study_into(
-        Path(out_dir), settings, progress=progress, robot=robot, resume=resume,
-        processes=processes,
-    )  # fmt: skip
-    if result is None:
-        click.echo(f"process {processes.index}: its chunks are done; process 0 writes the report")
-        return
-    click.echo(summary(result.report, result.paths[0]))
+    result = run_into(study_into, settings, out_dir, model=model, joints=joints, site=site,
+                      progress=progress, resume=resume, processes=processes)  # fmt: skip
+    if result is not None:
+        click.echo(summary(result.report, result.paths[0]))

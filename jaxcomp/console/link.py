@@ -134,8 +134,12 @@ class ConsoleLink:
                 pass
 
     def status(self, **fields: Any) -> None:
-        """Show ``fields`` on the page (state, detail, arm_modes, faults, ratio, friction,
-        params, progress, last_run, error, gains)."""
+        """Show ``fields`` on the page.
+
+        Args:
+            fields: the status lines to show, by name (state, detail, arm_modes, faults, ratio,
+                friction, params, progress, last_run, error, gains), JSON-able.
+        """
         self._send({"status": fields})
 
     # ---- from the page
@@ -193,6 +197,11 @@ class ConsoleLink:
     def alive(self) -> bool:
         """Whether the page's process runs."""
         return self._proc.poll() is None
+
+    @property
+    def server_pid(self) -> int:
+        """The process id of the page's server (e.g. to measure its CPU time)."""
+        return self._proc.pid
 
     def close(self) -> None:
         """Stop the page's process and remove the ring."""

@@ -11,10 +11,11 @@ accelerator (``jax_fit.fit_batch``) and M of them also with the paper's scipy fi
 (``identify.baseline``; the first worlds of each plan's group, M spread over the plans as the
 worlds are: ``baseline_worlds``). The report compares estimates with the truth.
 
-The stages, each in its own module and composed here (``run_study``): ``truth_draw``,
-``plan_signal``, ``plan_recording`` (simulate and reduce), ``jax_fit.fit_batch`` and
-``baseline`` (fit), ``calibration_estimates`` and ``calibration_statistics`` (compare),
-``calibration_figures`` and ``write_outputs`` (report).
+The stages, each in its own module and composed here (``run_study``, ``chunk_results``):
+``calibration_settings`` (what runs), ``truth_draw``, ``plan_signal``, ``plan_recording``
+(simulate and reduce), ``jax_fit.fit_batch`` and ``baseline`` (fit), ``calibration_estimates``
+and ``calibration_statistics`` (compare), ``calibration_report`` (report); the outputs written
+(``calibration_figures``, ``calibration_outputs``).
 
 Recording (``plan_recording``): the simulator steps at 1 kHz and every ``every``-th state
 (default 10: 100 Hz) is added on the device, inside the simulation loop, to its sweep's
@@ -42,9 +43,6 @@ friction of the truth N m s/rad, the fit's viscous term A s/rad (= ratio x visco
 
 import dataclasses
 import math
-import os
-import shutil
-import tempfile
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -56,185 +54,54 @@ from tqdm.auto import tqdm
 
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
-from jaxcomp.files import writing
-from jaxcomp.hardware.mjx import MjxSimulator
+from jaxcomp.hardware.mjx import BatchTruth, MjxSimulator
 from jaxcomp.hardware.truth import model_current_noise
 from jaxcomp.identify.evaluate import random_poses
 from jaxcomp.identify.jax_fit import BatchFit, FitModel, compile_fit_batch, fit_model
 from jaxcomp.identify.jax_fit import fit_batch as batch_fit
-from jaxcomp.identify.named_plans import (
-    check_plan_name,
-    named_plan,
-    plan_count,
-    random_count,
-    short_plan,
-)
+from jaxcomp.identify.named_plans import named_plan, plan_count, random_count
 from jaxcomp.identify.plan import CalibrationPlan
 from jaxcomp.identify.random_plans import plan_seed
 from jaxcomp.recording import Recording
 from jaxcomp.robot import Robot, load_robot
-from jaxcomp.robot_params import json_ready, write_json_atomic
 from jaxcomp.studies.calibration_estimates import (
+    Estimates,
     jax_estimates,
     jax_parameters,
     scipy_estimates,
 )
-from jaxcomp.studies.calibration_figures import plot_coverage, plot_errors
 from jaxcomp.studies.calibration_report import concat_chunks, study_report
-from jaxcomp.studies.plan_recording import fit_input_like, simulate
-from jaxcomp.studies.plan_signal import (
-    PlanSignal,
-    check_every,
-    plan_segments,
-    plan_signal,
-    start_pose,
+from jaxcomp.studies.calibration_settings import (
+    CalibrationSettings,
+    baseline_worlds,
+    sampled_worlds,
+    world_groups,
 )
+from jaxcomp.studies.plan_recording import Simulated, fit_input_like, simulate
+from jaxcomp.studies.plan_signal import PlanSignal, check_every, plan_signal, start_pose
 from jaxcomp.studies.processes import ONE_PROCESS, Processes, together
 from jaxcomp.studies.setup import MODEL, simulator
 from jaxcomp.studies.study_chunks import (
     CHUNK_WORLDS_PER_DEVICE,
-    CHUNKS_DIR,
     Chunk,
     ChunkStore,
-    into_folder,
+    chunk_store,
     run_chunks,
     study_chunks,
 )
-from jaxcomp.studies.truth_draw import TruthSpread, draw_truth
+from jaxcomp.studies.truth_draw import draw_truth
 
-__all__ = [  # the study, and the stages it composes
-    "FIGURES",
-    "FORMAT",
-    "STUDY_FILE",
-    "WORLDS_FILE",
-    "CalibrationSettings",
-    "StudyOutputs",
-    "TruthSpread",
-    "draw_truth",
-    "named_plan",
-    "plan_segments",
-    "plan_signal",
-    "plot_coverage",
-    "plot_errors",
-    "run_study",
-    "sampled_worlds",
-    "short_plan",
-    "simulate",
-    "simulator",
-    "start_pose",
-    "study_into",
-    "summary",
-    "world_groups",
-    "write_outputs",
-]
+__all__ = ["FORMAT", "SAMPLES_DIR", "chunk_results", "run_study"]
 
-STUDY_FILE = "study.json"
-WORLDS_FILE = "worlds.npz"
-FIGURES = ("errors.png", "coverage.png")
+#: The ``format`` of study.json.
 FORMAT = "jaxcomp-study-calibration"
-#: m: the least COM prior of a study (its truths may have no COM offset at all).
-MIN_COM_PRIOR = 1e-4
 #: Worlds per batch of the gravity-current errors at most (``gravity_current_error_batch``).
 GRAVITY_BATCH = 256
 #: The folder of the kept worlds' recordings (``keep_samples``) in the output folder.
 SAMPLES_DIR = "samples"
 
 
-# ----------------------------------------------------------------------------- the study
-@dataclasses.dataclass(frozen=True)
-class CalibrationSettings:
-    """What a calibration study runs, checked when made (InputError).
-
-    Attributes:
-        worlds: simulated true robots N (>= 1). seed: seed of every draw.
-        plan: "default" (the paper's ~230 s of sweeps), "short", "random" or "random:K" (K
-            random plans, each recorded by a group of the worlds: ``run_study``) or a plan
-            JSON file.
-        every: record every k-th 1 kHz state (10: 100 Hz) for the fits.
-        spread: how the true robots differ from the nominal model (``TruthSpread``).
-        baseline_sample: also fit M worlds with the paper's scipy fit (0: none), the first
-            of each plan's group (``baseline_worlds``).
-        devices: shard over the first K devices (None: all).
-        world_batch: worlds per MJX run (None: all on an accelerator, one per device on the
-            CPU, where MJX steps a batch of worlds slower than one world at a time).
-        fit_batch: fits per vmapped batch (None: all).
-        poses: random poses of the gravity-current error (drawn from ``seed``).
-        parallel: the plan's sweeps side by side (``simulate``; None: on an accelerator,
-            where a few thousand worlds leave it idle; on the CPU, where steps cost in
-            proportion to the worlds, the sweeps run in turn).
-        com_prior: m, the JAX fit's COM prior on every link (None: the spread the truths are
-            drawn from, ``study_com_prior``: the fit is told the population it is tested on;
-            ``jaxcomp fit`` has the model's default, ``fit_model``).
-        chunk_worlds: worlds per chunk (``study_chunks``; None: ``CHUNK_WORLDS_PER_DEVICE`` per
-            device, the whole study when it has fewer; a resumed study keeps its own).
-        keep_samples: the recorded samples of the first K worlds are saved (``run_study``).
-    """
-
-    worlds: int
-    seed: int = 0
-    plan: str = "default"
-    every: int = 10
-    spread: TruthSpread = TruthSpread()  # frozen: one shared default is safe
-    baseline_sample: int = 16
-    devices: int | None = None
-    world_batch: int | None = None
-    fit_batch: int | None = None
-    poses: int = 1000
-    parallel: bool | None = None
-    com_prior: float | None = None
-    chunk_worlds: int | None = None
-    keep_samples: int = 0
-
-    def __post_init__(self) -> None:
-        check_plan_name(self.plan)
-        checks = {
-            "--worlds": (self.worlds, 1),
-            "--every": (self.every, 1),
-            "--baseline-sample": (self.baseline_sample, 0),
-            "--poses": (self.poses, 1),
-            "--world-batch": (self.world_batch, 1),
-            "--fit-batch": (self.fit_batch, 1),
-            "--chunk-worlds": (self.chunk_worlds, 1),
-            "--keep-samples": (self.keep_samples, 0),
-        }
-        for name, (value, low) in checks.items():
-            if value is not None and (
-                isinstance(value, bool) or int(value) != value or value < low
-            ):
-                raise InputError(f"{name} must be an integer >= {low}, got {value}")
-        if plan_count(self.plan) > self.worlds:
-            raise InputError(
-                f"--plan {self.plan} needs at least as many --worlds ({self.worlds}) as plans"
-            )
-
-
-def study_com_prior(spread: TruthSpread) -> float:
-    """m: the standard deviation per axis of the true COM offsets, U(-c, c): c / sqrt(3) (at
-    least ``MIN_COM_PRIOR``)."""
-    return max(float(spread.com_offset) / math.sqrt(3.0), MIN_COM_PRIOR)
-
-
-def world_groups(worlds: int, count: int) -> list[range]:
-    """The worlds 0..``worlds`` - 1 cut into ``count`` contiguous groups, as even as possible
-    (the first ``worlds % count`` one world longer)."""
-    size, extra = divmod(worlds, count)
-    edges = np.cumsum([0] + [size + (g < extra) for g in range(count)])
-    return [range(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
-
-
-def baseline_worlds(groups: list[range], sample: int) -> np.ndarray:
-    """The worlds of the scipy sample: ``sample`` of them (at most all), cut over the plans'
-    ``groups`` (``world_groups``) as ``world_groups`` cuts the worlds, the first ones of each
-    group, so that every plan is in the sample."""
-    shares = world_groups(min(sample, groups[-1].stop), len(groups))
-    return np.concatenate(
-        [
-            np.arange(rows.start, rows.start + len(share))
-            for rows, share in zip(groups, shares, strict=True)
-        ]
-    ).astype(np.int64)
-
-
+# ----------------------------------------------------------------------------- the plans
 class _Group(NamedTuple):
     """The worlds ``rows`` of a study, which record ``plan`` (its ``signal``)."""
 
@@ -256,6 +123,18 @@ class _Group(NamedTuple):
         }
 
 
+def _plan_groups(robot: Robot, settings: CalibrationSettings) -> list[_Group]:
+    """The plans' groups of worlds (``world_groups``), each plan made and its signal checked
+    against the recording step."""
+    plan, seed, every = settings.plan, settings.seed, settings.every
+    groups = []
+    for g, rows in enumerate(world_groups(settings.worlds, plan_count(plan))):
+        the_plan = named_plan(robot, plan, seed=seed, group=g)
+        groups.append(_Group(rows, the_plan, plan_signal(the_plan, start_pose(robot))))
+        check_every(groups[-1].signal, every)
+    return groups
+
+
 def _plan_report(name: str, seed: int, groups: list[_Group]) -> dict:
     """The report's plan: name, sweeps, 1 kHz steps and duration (s) of the plan (of several
     plans, the means over the worlds), and each group's (``_Group.describe``)."""
@@ -269,6 +148,7 @@ def _plan_report(name: str, seed: int, groups: list[_Group]) -> dict:
     return {"name": name} | mean | {"groups": per_group}
 
 
+# ----------------------------------------------------------------------------- the study set up
 class _Study(NamedTuple):
     """What every chunk of a study shares: its settings, robot, fit model, plan groups,
     simulator, poses of the gravity error, the worlds that send their samples to the host
@@ -303,39 +183,32 @@ class _Study(NamedTuple):
             "baseline_sample": s.baseline_sample,
             "keep_samples": s.keep_samples,
             "poses": s.poses,
-            "com_prior": s.com_prior or study_com_prior(s.spread),
+            "com_prior": s.fit_com_prior(),
             "parallel_sweeps": self.parallel,
             "chunk_worlds": self.chunk_worlds,
         }
 
 
-def sampled_worlds(groups: list[range], sample: np.ndarray, keep_samples: int) -> np.ndarray:
-    """The worlds whose samples come to the host: the scipy ``sample`` (the first worlds of
-    each plan group, ``baseline_worlds``) and the first ``keep_samples`` worlds, ascending.
-    In each group they are its first worlds (a prefix), as ``simulate(keep=)`` takes them."""
-    first = np.arange(min(keep_samples, groups[-1].stop))
-    return np.union1d(sample, first).astype(np.int64)
-
-
-def _setup(settings: CalibrationSettings, robot: Robot | None) -> _Study:
-    """The study's shared parts (``_Study``), plans checked and the simulator made."""
+def _check_baseline_fit(settings: CalibrationSettings) -> None:
+    """InputError when the study asks for scipy fits and pinocchio is missing (now, not at the
+    end)."""
     if settings.baseline_sample:
         try:
-            import pinocchio  # noqa: F401  (the scipy fit needs it: fail now, not at the end)
+            import pinocchio  # noqa: F401  (the scipy fit needs it)
         except ImportError:
             raise InputError(
                 "--baseline-sample needs pinocchio (pip install pin); use --baseline-sample 0 "
                 "to skip the scipy fit"
             ) from None
+
+
+def _setup(settings: CalibrationSettings, robot: Robot | None) -> _Study:
+    """The study's shared parts (``_Study``), plans checked and the simulator made."""
+    _check_baseline_fit(settings)
     robot = load_robot(MODEL) if robot is None else robot
-    plan, seed, every = settings.plan, settings.seed, settings.every
-    groups = []
-    for g, rows in enumerate(world_groups(settings.worlds, plan_count(plan))):
-        the_plan = named_plan(robot, plan, seed=seed, group=g)
-        groups.append(_Group(rows, the_plan, plan_signal(the_plan, start_pose(robot))))
-        check_every(groups[-1].signal, every)
+    groups = _plan_groups(robot, settings)
     sim = simulator(settings.devices, robot)
-    model = fit_model(robot, settings.com_prior or study_com_prior(settings.spread))
+    model = fit_model(robot, settings.fit_com_prior())
     backend = jax.default_backend()
     chunk = min(settings.chunk_worlds or CHUNK_WORLDS_PER_DEVICE * sim.mesh.size, settings.worlds)
     sample = baseline_worlds([gr.rows for gr in groups], settings.baseline_sample)
@@ -345,7 +218,7 @@ def _setup(settings: CalibrationSettings, robot: Robot | None) -> _Study:
         model,
         groups,
         sim,
-        random_poses(robot, settings.poses, seed=seed),
+        random_poses(robot, settings.poses, seed=settings.seed),
         sample,
         sampled_worlds([gr.rows for gr in groups], sample, settings.keep_samples),
         settings.world_batch or (chunk if backend != "cpu" else sim.mesh.size),
@@ -355,27 +228,59 @@ def _setup(settings: CalibrationSettings, robot: Robot | None) -> _Study:
     )
 
 
+# ----------------------------------------------------------------------------- one chunk
 def chunk_results(
     study: _Study, chunk: Chunk, progress: bool = False
 ) -> tuple[dict[str, dict[str, np.ndarray]], dict[int, Recording]]:
-    """One chunk of ``study``: its worlds drawn, simulated and fitted. ({"world": rows of
-    ``WORLD_KEYS``, "scipy": the sample's worlds in the chunk (``SCIPY_KEYS``), "timing": s},
-    {world: recording} of the first ``keep_samples`` worlds in it). A world's numbers do not
-    depend on the chunk it is in (its truth, noise and fit are its own; every fit batch
-    has ``fit_batch`` worlds)."""
-    s, gr, rows = study.settings, study.groups[chunk.group], chunk.rows
-    first, count = rows.start, len(rows)
-    truth = draw_truth(study.robot, count, s.seed, s.spread, first=first)
-    ids = np.arange(first, rows.stop)
+    """One chunk of ``study``: its worlds drawn, simulated and reduced, fitted and compared.
+
+    A world's numbers do not depend on the chunk it is in (its truth, noise and fit are its
+    own; every fit batch has ``fit_batch`` worlds).
+
+    Args:
+        study: the study set up (``run_study``).
+        chunk: the chunk, its global world ids all of one plan group.
+        progress: show progress bars.
+
+    Returns:
+        ({"world": rows of ``WORLD_KEYS``, "scipy": the sample's worlds in the chunk
+        (``SCIPY_KEYS``), "timing": s and the world-steps simulated}, {world: recording} of
+        the first ``keep_samples`` worlds in it).
+    """
+    s, rows = study.settings, chunk.rows
+    truth = draw_truth(study.robot, len(rows), s.seed, s.spread, first=rows.start)
+    ids = np.arange(rows.start, rows.stop)
     recorded = int(np.isin(ids, study.sampled).sum())  # a prefix of the chunk
-    bar = tqdm(
-        total=count * len(gr.signal.q_ref),
-        unit="step",
-        unit_scale=True,
-        desc=f"MJX, worlds {first}-{rows.stop - 1}",
-        disable=not progress,
-        leave=False,
-    )
+    simulated, fits, fit_timing = _simulate_and_fit(study, chunk, truth, recorded, progress)
+    jax_est, evaluate_s = _compare(study, truth, simulated, fits)
+    local = np.flatnonzero(np.isin(ids, study.sample))
+    scipy_est, failed, scipy_s = _scipy_fits(study, truth, local, simulated.recordings, jax_est,
+                                             progress)  # fmt: skip
+    timing = dict(simulated.timing) | fit_timing | {
+        "evaluate": evaluate_s, "fit_scipy": scipy_s,
+        "world_steps": float(simulated.world_steps)}  # fmt: skip
+    world = _world_rows(chunk, simulated, fits, jax_est)
+    scipy = _scipy_rows(ids[local], scipy_est, failed, rows.start)
+    kept = {int(w): simulated.recordings[i] for i, w in enumerate(ids[:recorded])
+            if w < s.keep_samples}  # fmt: skip
+    return {"world": world, "scipy": scipy, "timing": timing}, kept
+
+
+def _gravity_batch(study: _Study) -> int:
+    """Worlds per batch of the gravity-current errors: one shape in every chunk."""
+    return min(study.fit_batch, GRAVITY_BATCH)
+
+
+def _simulate_and_fit(
+    study: _Study, chunk: Chunk, truth: BatchTruth, recorded: int, progress: bool
+) -> tuple[Simulated, BatchFit, dict[str, float]]:
+    """The chunk's plan recorded and reduced in its worlds (``simulate``; the first
+    ``recorded`` keep their samples) while the fit compiles beside them, then the joint fits:
+    (simulated, fits, the fits' timing s)."""
+    gr, rows = study.groups[chunk.group], chunk.rows
+    bar = tqdm(total=len(rows) * len(gr.signal.q_ref), unit="step", unit_scale=True,
+               desc=f"MJX, worlds {rows.start}-{rows.stop - 1}", disable=not progress,
+               leave=False)  # fmt: skip
     with ThreadPoolExecutor(1) as pool:
         compiling: list[Future] = []
 
@@ -385,72 +290,23 @@ def chunk_results(
             bar.update(k)
 
         simulated = simulate(
-            study.sim,
-            truth,
-            gr.signal,
-            seed=s.seed,
-            every=s.every,
-            world_batch=study.world_batch,
-            keep=first + recorded,  # global index: the chunk's first worlds
-            progress=stepped,
-            parallel=study.parallel,
-            offset=first,
-        )
+            study.sim, truth, gr.signal, seed=study.settings.seed, every=study.settings.every,
+            world_batch=study.world_batch, keep=rows.start + recorded,  # the chunk's first
+            progress=stepped, parallel=study.parallel, offset=rows.start,
+        )  # fmt: skip
         bar.close()
         t0 = time.perf_counter()
         beside = compiling[0].result() if compiling else 0.0  # s compiling, off the path
         waited = time.perf_counter() - t0
-    timing = dict(simulated.timing)
     t0 = time.perf_counter()
-    fits = _fit(study, simulated.moments, simulated.transfers, count)
-    timing["fit_jax"] = waited + time.perf_counter() - t0
-    timing["fit_jax_compile"] = waited + fits.compile_seconds  # the part not beside the worlds
-    timing["fit_jax_compile_aside"] = beside
-    timing["fit_jax_run"] = fits.seconds
-    t0 = time.perf_counter()
-    gravity_batch = min(study.fit_batch, GRAVITY_BATCH)  # one shape in every chunk
-    jax_est = jax_estimates(
-        study.robot, study.model, truth, simulated, fits, study.poses, gravity_batch
-    )
-    timing["evaluate"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    local = np.flatnonzero(np.isin(ids, study.sample))
-    bar = tqdm(total=len(local), unit="fit", desc="scipy fits", leave=False,
-               disable=not progress or not len(local))  # fmt: skip
-    recordings = simulated.recordings
-    scipy_est, failed = scipy_estimates(
-        study.robot, truth, local, [recordings[i] for i in local], jax_est, study.poses,
-        progress=bar.update, batch=gravity_batch,
-    )  # fmt: skip
-    bar.close()
-    timing["fit_scipy"] = time.perf_counter() - t0
-    timing["world_steps"] = float(simulated.world_steps)
-    sol = fits.solution
-    world = {
-        "plan_group": np.full(count, chunk.group),
-        "truth": jax_est.truth,
-        "jax_estimate": jax_est.estimate,
-        "jax_std": jax_est.std,
-        "jax_identified": jax_est.identified,
-        "jax_converged": np.asarray(sol.converged),
-        "jax_ok": jax_est.ok,
-        "jax_noise_estimate": np.asarray(sol.sigma),
-        "jax_gravity_current_error": jax_est.gravity,
-        "jax_gravity_current_error_pooled": jax_est.gravity_pooled,
-        "swept": jax_est.swept,
-        "fault_step": simulated.fault_step,
+    fits = _fit(study, simulated.moments, simulated.transfers, len(rows))
+    timing = {
+        "fit_jax": waited + time.perf_counter() - t0,
+        "fit_jax_compile": waited + fits.compile_seconds,  # the part not beside the worlds
+        "fit_jax_compile_aside": beside,
+        "fit_jax_run": fits.seconds,
     }
-    scipy = {
-        "scipy_worlds": ids[local],
-        "scipy_estimate": scipy_est.estimate,
-        "scipy_std": scipy_est.std,
-        "scipy_gravity_current_error": scipy_est.gravity,
-        "scipy_gravity_current_error_pooled": scipy_est.gravity_pooled,
-        "scipy_failed_world": np.array([f["world"] + first for f in failed], np.int64),
-        "scipy_failed_error": np.array([f["error"] for f in failed], str),
-    }
-    kept = {int(w): recordings[i] for i, w in enumerate(ids[:recorded]) if w < s.keep_samples}
-    return {"world": world, "scipy": scipy, "timing": timing}, kept
+    return simulated, fits, timing
 
 
 def _compile_fit(study: _Study, signal: PlanSignal) -> float:
@@ -481,6 +337,77 @@ def _fit(study: _Study, moments, transfers, count: int) -> BatchFit:
     )
 
 
+def _compare(
+    study: _Study, truth: BatchTruth, simulated: Simulated, fits: BatchFit
+) -> tuple[Estimates, float]:
+    """The joint fits' estimates against the truth (``jax_estimates``) and the s it took."""
+    t0 = time.perf_counter()
+    jax_est = jax_estimates(study.robot, study.model, truth, simulated, fits, study.poses,
+                            _gravity_batch(study))  # fmt: skip
+    return jax_est, time.perf_counter() - t0
+
+
+def _scipy_fits(
+    study: _Study,
+    truth: BatchTruth,
+    local: np.ndarray,
+    recordings: list[Recording],
+    jax_est: Estimates,
+    progress: bool,
+) -> tuple[Estimates, list[dict], float]:
+    """The paper's scipy fit of the chunk's sample worlds ``local`` (indices into the chunk)
+    from their ``recordings`` (``scipy_estimates``): (estimates, failed fits, s)."""
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(local), unit="fit", desc="scipy fits", leave=False,
+               disable=not progress or not len(local))  # fmt: skip
+    try:
+        scipy_est, failed = scipy_estimates(
+            study.robot, truth, local, [recordings[i] for i in local], jax_est, study.poses,
+            progress=bar.update, batch=_gravity_batch(study),
+        )  # fmt: skip
+    finally:
+        bar.close()
+    return scipy_est, failed, time.perf_counter() - t0
+
+
+def _world_rows(
+    chunk: Chunk, simulated: Simulated, fits: BatchFit, jax_est: Estimates
+) -> dict[str, np.ndarray]:
+    """The chunk's rows of the per-world arrays (``WORLD_KEYS``)."""
+    sol = fits.solution
+    return {
+        "plan_group": np.full(len(chunk.rows), chunk.group),
+        "truth": jax_est.truth,
+        "jax_estimate": jax_est.estimate,
+        "jax_std": jax_est.std,
+        "jax_identified": jax_est.identified,
+        "jax_converged": np.asarray(sol.converged),
+        "jax_ok": jax_est.ok,
+        "jax_noise_estimate": np.asarray(sol.sigma),
+        "jax_gravity_current_error": jax_est.gravity,
+        "jax_gravity_current_error_pooled": jax_est.gravity_pooled,
+        "swept": jax_est.swept,
+        "fault_step": simulated.fault_step,
+    }
+
+
+def _scipy_rows(
+    worlds: np.ndarray, scipy_est: Estimates, failed: list[dict], first: int
+) -> dict[str, np.ndarray]:
+    """The chunk's sample ``worlds`` (global ids) in the scipy arrays (``SCIPY_KEYS``); the
+    failed fits' worlds are chunk indices, ``first`` the chunk's first world."""
+    return {
+        "scipy_worlds": worlds,
+        "scipy_estimate": scipy_est.estimate,
+        "scipy_std": scipy_est.std,
+        "scipy_gravity_current_error": scipy_est.gravity,
+        "scipy_gravity_current_error_pooled": scipy_est.gravity_pooled,
+        "scipy_failed_world": np.array([f["world"] + first for f in failed], np.int64),
+        "scipy_failed_error": np.array([f["error"] for f in failed], str),
+    }
+
+
+# ----------------------------------------------------------------------------- the study
 def run_study(
     settings: CalibrationSettings,
     *,
@@ -490,34 +417,58 @@ def run_study(
     resume: bool = False,
     processes: Processes = ONE_PROCESS,
 ) -> tuple[dict, dict] | None:
-    """The whole study of ``settings``: (report for study.json, per-world arrays for
-    worlds.npz); see the module docstring. ``progress``: show progress bars; ``robot``: the
-    ``MODEL`` robot to study, whose simulator (``setup.simulator``) and compiled programs it
-    keeps (default: freshly loaded).
+    """The whole study of ``settings``: set up, then each chunk simulated, reduced and fitted
+    (``chunk_results``), then the report; see the module docstring.
 
     The worlds run in chunks (``study_chunks``: ``chunk_worlds`` contiguous worlds of one
-    plan group each, ``chunk_results``); the report is made from the chunks' joined per-world
-    arrays (``calibration_report``), whatever the chunking. With a ``folder`` (the study's
-    output folder, created and locked by the caller), each finished chunk is written to
-    ``folder``/chunks (``ChunkStore``) and ``resume`` keeps those of an interrupted run of the
-    same settings; the samples of the first ``keep_samples`` worlds go to ``folder``/samples.
-    With several ``processes`` (``processes.start_processes``) each runs its own chunks
-    (``Processes.mine``) into the shared ``folder`` and process 0 alone returns the report
-    (the others None).
+    plan group each); the report is made from the chunks' joined per-world arrays
+    (``calibration_report``), whatever the chunking. With ``plan`` "random:K" the worlds are
+    cut into K contiguous groups (``world_groups``), group g recording its own random plan
+    (seed ``plan_seed(seed, g)``); the truths are drawn per world (world w is the same for
+    any K).
 
-    With ``plan`` "random:K" the worlds are cut into K contiguous groups (``world_groups``),
-    group g recording its own random plan (seed ``plan_seed(seed, g)``); the truths are drawn
-    per world (world w is the same for any K).
+    Args:
+        settings: what the study runs.
+        progress: show progress bars.
+        robot: the ``MODEL`` robot to study, whose simulator (``setup.simulator``) and
+            compiled programs it keeps (None: freshly loaded).
+        folder: the study's output folder, created and locked by the caller: each finished
+            chunk is written to ``folder``/chunks (``ChunkStore``), the samples of the first
+            ``keep_samples`` worlds to ``folder``/samples (None: chunks in memory).
+        resume: keep the chunks in ``folder`` of an interrupted run of the same settings.
+        processes: this process among several (``processes.start_processes``), each running
+            its own chunks (``Processes.mine``) into the shared ``folder``.
+
+    Returns:
+        (the report for study.json, the per-world arrays for worlds.npz) on process 0; None
+        on the others.
+
+    Raises:
+        InputError: ``keep_samples``, ``resume`` or several processes without a folder, a
+            plan the recording step does not fit, or a scipy sample without pinocchio.
     """
     t_all = time.perf_counter()
     if folder is None and (settings.keep_samples or processes.count > 1 or resume):
         raise InputError("--keep-samples, --resume and --distributed need an output folder")
-    store = None if folder is None else ChunkStore(Path(folder) / CHUNKS_DIR)
-    if resume and store is not None and settings.chunk_worlds is None:  # on any device count
-        settings = dataclasses.replace(settings, chunk_worlds=store.earlier("chunk_worlds"))
+    store, settings = chunk_store(folder, settings, resume)
     study = together(processes, lambda: _setup(settings, robot), "to set the study up")
-    chunks = study_chunks([gr.rows for gr in study.groups], study.chunk_worlds)
     setup_s = time.perf_counter() - t_all
+    parts = _run_chunks(study, store, folder, resume, processes, progress)
+    if parts is None:
+        return None
+    return _report(study, parts, setup_s, t_all, processes)
+
+
+def _run_chunks(
+    study: _Study,
+    store: ChunkStore | None,
+    folder: Path | None,
+    resume: bool,
+    processes: Processes,
+    progress: bool,
+) -> list[dict] | None:
+    """Every chunk's parts in order (``run_chunks`` over ``chunk_results``), the kept
+    worlds' recordings saved in ``folder``/samples; None on processes other than 0."""
 
     def compute(chunk: Chunk) -> dict:
         parts, recordings = chunk_results(study, chunk, progress)
@@ -525,10 +476,16 @@ def run_study(
             rec.save(Path(folder) / SAMPLES_DIR / f"world_{w:05d}.npz")
         return parts
 
-    parts = run_chunks(processes, chunks, store, compute, settings=study.run_settings(),
-                       resume=resume, progress=progress)  # fmt: skip
-    if parts is None:
-        return None
+    chunks = study_chunks([gr.rows for gr in study.groups], study.chunk_worlds)
+    return run_chunks(processes, chunks, store, compute, settings=study.run_settings(),
+                      resume=resume, progress=progress)  # fmt: skip
+
+
+def _report(
+    study: _Study, parts: list[dict], setup_s: float, t_all: float, processes: Processes
+) -> tuple[dict, dict]:
+    """(report, per-world arrays) from every chunk's ``parts``; ``setup_s`` the set-up's s,
+    ``t_all`` the study's start (``time.perf_counter``)."""
     t0 = time.perf_counter()
     arrays, timing = concat_chunks(parts, *jax_parameters(study.model))
     world_steps = timing.pop("world_steps")
@@ -551,7 +508,7 @@ def _describe(study: _Study, timing: dict, world_steps: float, processes: Proces
         "record_every": s.every,
         "record_rate_hz": 1.0 / (CONTROL_PERIOD * s.every),
         "truth": dataclasses.asdict(s.spread) | {"noise": float(noise)},
-        "fit_com_prior": s.com_prior or study_com_prior(s.spread),
+        "fit_com_prior": s.fit_com_prior(),
         "backend": jax.default_backend(),
         "devices": [str(d) for d in sim.mesh.devices.flat],
         "processes": processes.count,
@@ -561,158 +518,3 @@ def _describe(study: _Study, timing: dict, world_steps: float, processes: Proces
         "timing_s": timing,
         "world_steps": world_steps,
     }
-
-
-# ----------------------------------------------------------------------------- outputs
-def write_outputs(out: Path, report: dict, arrays: dict) -> list[Path]:
-    """Write the figures, ``worlds.npz`` and ``study.json`` (last) into ``out``.
-
-    Everything is written to a staging folder inside ``out`` first and moved in by
-    ``os.replace`` only once all of it is written: an error leaves ``out`` as it was.
-    """
-    with writing(out):
-        stage = Path(tempfile.mkdtemp(prefix=".study-calibration.", dir=out))
-    try:
-        plot_errors(report, arrays, stage / FIGURES[0])
-        plot_coverage(report, arrays, stage / FIGURES[1])
-        with writing(out / WORLDS_FILE):
-            np.savez_compressed(stage / WORLDS_FILE, **arrays)
-        with writing(out / STUDY_FILE):
-            write_json_atomic(stage / STUDY_FILE, json_ready(report))
-        names = [*FIGURES, WORLDS_FILE, STUDY_FILE]
-        with writing(out):
-            for name in names:
-                os.replace(stage / name, out / name)
-        return [out / name for name in names]
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
-
-
-# ----------------------------------------------------------------------------- one call
-class StudyOutputs(NamedTuple):
-    """What ``study_into`` made: the report (study.json), the per-world arrays (worlds.npz)
-    and the files written."""
-
-    report: dict
-    arrays: dict
-    paths: list[Path]
-
-
-def study_into(
-    out: Path,
-    settings: CalibrationSettings,
-    *,
-    progress: bool = True,
-    robot: Robot | None = None,
-    resume: bool = False,
-    processes: Processes = ONE_PROCESS,
-) -> StudyOutputs | None:
-    """``run_study`` and ``write_outputs`` into the folder ``out``, created and locked first
-    (``files.output_folder``: FileError before minutes of simulation); on error nothing is
-    written but the finished chunks (``run_study``: ``resume`` keeps them), and a folder it
-    created and left empty is removed. With several ``processes``, process 0 holds the folder
-    and writes the report; the others write their chunks into it and return None."""
-
-    def run(folder: Path) -> tuple[dict, dict] | None:
-        shown = progress and processes.index == 0
-        return run_study(settings, progress=shown, robot=robot, folder=folder, resume=resume,
-                         processes=processes)  # fmt: skip
-
-    def write(folder: Path, result: tuple[dict, dict]) -> StudyOutputs:
-        report, arrays = result
-        return StudyOutputs(report, arrays, write_outputs(folder, report, arrays))
-
-    return into_folder(out, processes, run, write)
-
-
-def summary(report: dict) -> str:
-    """A few lines for people: per-joint errors of both fits, coverage, run times."""
-    n = sum(k.startswith("ratio[") for k in report["jax"]["parameters"])
-    jp, sp = report["jax"]["parameters"], report["scipy"]["parameters"]
-    jg, sg = report["jax"]["gravity_current_error"], report["scipy"]["gravity_current_error"]
-
-    def pct(v: float | None) -> str:
-        return "-" if v is None or not math.isfinite(v) else f"{100 * v:.2f}%"
-
-    head = f"{'joint':<6}" + "".join(
-        f"{h:>14}"
-        for h in (
-            "ratio jax",
-            "ratio scipy",
-            "friction jax",
-            "fric. scipy",
-            "g-cur jax",
-            "g-cur scipy",
-        )
-    )
-    plan = report["plan"]
-    plans = len(plan["groups"])
-    length = (
-        f"{plan['duration_s']:.0f} s"
-        if plans == 1
-        else f"{plans} plans, mean {plan['duration_s']:.0f} s"
-    )
-    lines = [
-        f"{report['worlds']} worlds, plan {plan['name']} ({length}), "
-        f"{report['backend']} x{len(report['devices'])}; "
-        f"RMS relative errors (scipy on {report['scipy']['worlds']} of them, "
-        f"{report['scipy'].get('plans', 1)} plans), "
-        "gravity current: median over worlds",
-        head,
-    ]
-    for j in range(n):
-        r, f = f"ratio[{j}]", f"friction[{j}]"
-        row = [
-            jp[r]["relative_rmse"],
-            sp.get(r, {}).get("relative_rmse"),
-            jp[f]["relative_rmse"],
-            sp.get(f, {}).get("relative_rmse"),
-            jg["median"][j] if jg["median"] else None,
-            sg["median"][j] if sg["median"] else None,
-        ]
-        lines.append(f"{j:<6}" + "".join(f"{pct(v):>14}" for v in row))
-    pooled = report["jax"]["on_scipy_worlds"]["pooled_gravity_current_error"]
-    if pooled["worlds"]:
-        lines.append(
-            f"gravity current pooled over the swept joints, {pooled['worlds']} worlds both fits "
-            f"have: JAX worse than scipy in {pct(pooled['jax_worse_fraction'])}; median JAX "
-            f"{pct(pooled['jax_median'])}, scipy {pct(pooled['scipy_median'])}"
-        )
-    worst = report["jax"]["largest_identified_ratio_error"]
-    if worst["count"]:
-        lines.append(
-            f"largest ratio error the JAX fit reports identified ({worst['count']} ratios): "
-            f"{pct(worst['max_abs_relative'])} (world {worst['world']}, joint {worst['joint']})"
-        )
-    else:
-        lines.append(
-            "no ratio reported identified (in one mounting each rests partly on the COM prior; "
-            "a recording with a known payload identifies them)"
-        )
-    cov, worst = report["coverage"]["jax"]["identified"], report["coverage"]["jax"]["worst"]
-    t = report["timing_s"]
-    lines.append(
-        f"coverage of +-1.96 std (JAX, {cov['count']} determined estimates): "
-        f"{pct(cov['coverage_95'])}; z std {cov['z_std']:.2f}"
-        + (
-            f"; lowest of one parameter: {worst['parameter']} {pct(worst['coverage_95'])} "
-            f"of {worst['count']}"
-            if worst
-            else ""
-        )
-    )
-    if report["faulted_worlds"]:
-        lines.append(
-            f"{report['faulted_worlds']} of {report['worlds']} worlds faulted before their plan "
-            "ended (following error, overspeed, a limit: a true robot that cannot follow it) "
-            "and are left out; per plan: " + ", ".join(str(c) for c in report["faulted_by_plan"])
-        )
-    lines.append(
-        f"time: simulate {t['simulate']:.1f} s (compile {t['simulate_compile']:.1f} s, "
-        f"{report['throughput']['world_steps_per_s']:.3g} world-steps/s), JAX fits "
-        f"{t['fit_jax']:.1f} s (compile {t['fit_jax_compile']:.1f} s, and "
-        f"{t['fit_jax_compile_aside']:.1f} s beside the simulation; "
-        f"{report['throughput']['jax_fits_per_min']:.3g}/min), scipy {t['fit_scipy']:.1f} s, "
-        f"total {t['total']:.1f} s"
-    )
-    return "\n".join(lines)

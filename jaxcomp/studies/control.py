@@ -21,8 +21,8 @@ The controller is the wiring of ``control`` to the simulator: ``control_policy.i
 turns the controller's step function into a per-world closed-loop policy whose parameters
 (ratio, friction, COM of every link) are per-world arrays, with the control loop's start
 (previous command = measured current), its saturation watchdog, and the phase metrics in its
-state. The model error of each world's controller (``model_errors``) includes the
-gravity-current error pooled over all joints (``gravity_current_error_pooled``). Units SI (m, s,
+state. The timeline, each world's draws and its controller's model error (``model_errors``,
+with the gravity-current error pooled over all joints) are ``control_worlds``'. Units SI (m, s,
 N, A, rad); positions in the world (= arm base) frame.
 """
 
@@ -31,7 +31,7 @@ import math
 import platform
 import time
 from pathlib import Path
-from typing import NamedTuple
+from typing import NamedTuple, Unpack
 
 import jax
 import numpy as np
@@ -39,205 +39,48 @@ from tqdm.auto import tqdm
 
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.control import ImpedanceGains, impedance_gains
-from jaxcomp.control.trajectory import Trajectory, parse_trajectory
+from jaxcomp.control.trajectory import Trajectory
 from jaxcomp.errors import InputError
 from jaxcomp.files import writing
 from jaxcomp.hardware.mjx import (
     SETTLE_STEPS,
     BatchTruth,
+    ClosedLoopResult,
     MjxSimulator,
     Policy,
-    PushSchedule,
     fault_names,
 )
-from jaxcomp.hardware.truth import DEFAULT_COM_OFFSET, truth_centre
-from jaxcomp.identify.evaluate import gravity_current_error_batch, random_poses
 from jaxcomp.robot import Robot, load_robot
-from jaxcomp.robot_params import RobotParams, arm_joint_indices, json_ready, write_json_atomic
+from jaxcomp.robot_params import json_ready, write_json_atomic
 from jaxcomp.studies.control_figures import write_figures
-from jaxcomp.studies.control_policy import (
-    REFERENCE_COLUMNS,
-    controller_params,
-    impedance_policy,
+from jaxcomp.studies.control_policy import impedance_policy
+from jaxcomp.studies.control_worlds import (
+    BASELINE,
+    HELD,
+    PUSH_START,
+    RELEASE,
+    TRACK_START,
+    draw_worlds,
+    model_errors,
+    ramped_pushes,
+    reference_rows,
+    trajectory_for,
 )
 from jaxcomp.studies.processes import ONE_PROCESS, Processes, together
 from jaxcomp.studies.setup import MODEL, simulator
 from jaxcomp.studies.study_chunks import (
     CHUNK_WORLDS_PER_DEVICE,
-    CHUNKS_DIR,
-    ChunkStore,
+    StudyOptions,
+    chunk_store,
     into_folder,
     run_chunks,
     study_chunks,
 )
 
-# the timeline, s from the start of the closed loop
-BASELINE = (0.3, 0.5)  # static offset window
-PUSH_START = 0.5  # first of the ramp's pushes
-RAMP = 5  # pushes of F / RAMP, RAMP_STEP apart
-RAMP_STEP = 0.02
-RELEASE = 1.5  # every push ends here
-HELD = (RELEASE - 0.25, RELEASE - 0.05)  # displacement window
-TRACK_START = 2.0  # the half circle starts here
-POSES = 64  # random poses of the pooled gravity-current model error
-
 STUDY_JSON = "study.json"
 
 
-# ----------------------------------------------------------------------------- the worlds
-def reference_rows(
-    trajectory: Trajectory, start: np.ndarray, steps: int, windows: dict[str, tuple[float, float]]
-) -> np.ndarray:
-    """(steps + 1, 12) rows of the policy's reference at t = k ms: the target (``start`` (3,) m
-    before ``TRACK_START``, then ``trajectory(t - TRACK_START)``) and the window weights
-    ``windows`` {"track"|"base"|"push": (from, to) s}, 1 where from <= t < to."""
-    t = np.arange(steps + 1) * CONTROL_PERIOD
-    rows = np.zeros((steps + 1, REFERENCE_COLUMNS))
-    rows[:, 0:3] = start
-    moving = t >= TRACK_START
-    if moving.any():
-        sample = trajectory.sample(t[moving] - TRACK_START)
-        rows[moving, 0:3], rows[moving, 3:6], rows[moving, 6:9] = sample
-    for col, name in ((9, "track"), (10, "base"), (11, "push")):
-        lo, hi = windows.get(name, (math.inf, math.inf))
-        rows[(t >= lo) & (t < hi), col] = 1.0
-    return rows
-
-
-def ramped_pushes(direction: np.ndarray, force: float) -> PushSchedule:
-    """``PushSchedule`` (W, RAMP): F/RAMP along each world's unit ``direction`` (W, 3), the
-    k-th from PUSH_START + k RAMP_STEP until RELEASE."""
-    w = len(direction)
-    start = PUSH_START + RAMP_STEP * np.arange(RAMP)
-    starts = np.broadcast_to(start, (w, RAMP)).copy()
-    piece = force / RAMP * np.asarray(direction, float)
-    return PushSchedule(starts, RELEASE - starts, np.repeat(piece[:, None], RAMP, axis=1))
-
-
-# ----------------------------------------------------------------------------- the worlds
-def draw_worlds(
-    robot: Robot,
-    worlds: int,
-    seed: int,
-    params_error: float,
-    com_error: float,
-    nominal: bool,
-    noise: float,
-    push: str = "horizontal",
-    first: int = 0,
-) -> tuple[BatchTruth, dict[str, np.ndarray], np.ndarray]:
-    """(truth, controller params, push directions (W, 3)) of the worlds ``first`` ..
-    ``first`` + W - 1, each drawn from its own generator ``default_rng((seed, id))``: a world's
-    draws do not depend on how many worlds are drawn with it (chunks, processes).
-
-    Truth per world: the model's ratios and friction losses (``truth_centre``; the Gen3 Lite:
-    the paper's) x U(0.9, 1.1) and x U(0.8, 1.2), COM
-    offsets U(+-4 mm) per axis on every moving link, current noise ``noise`` A. Controller:
-    ``nominal`` -> the model's nominal ratios, no friction compensation, nominal COM; else
-    "identified-like": ratio and friction x (1 + U(-params_error, params_error)), COM offsets
-    + U(+-com_error) m per axis (moving links). Push directions: ``push`` "horizontal",
-    uniform in the world's xy plane, or "sphere", uniform on the unit sphere (a 10 N push
-    down at ``home`` plus the friction compensation asks joint 1 for more than its 14 N m).
-    """
-    if push not in ("horizontal", "sphere"):
-        raise InputError(f"push direction must be 'horizontal' or 'sphere', got {push!r}")
-    n, nb = len(arm_joint_indices(robot)), len(robot.link_names)
-    moved = robot.tree.moves.any(axis=0)[None, :, None]
-    ratio_c, friction_c = truth_centre(robot)
-    draws = [_world_draws(np.random.default_rng((seed, w)), n, nb)
-             for w in range(first, first + worlds)]  # fmt: skip
-    u_ratio, u_friction, u_com, u_err, u_com_err, angle, normal = (
-        np.stack(a) for a in zip(*draws, strict=True)
-    )
-    ratio = ratio_c * (0.9 + 0.2 * u_ratio)
-    friction = friction_c * (0.8 + 0.4 * u_friction)
-    com = DEFAULT_COM_OFFSET * (2 * u_com - 1) * moved
-    truth = BatchTruth.from_arrays(robot, ratio, friction, com_offset=com, current_noise=noise)
-    err = np.moveaxis(2 * u_err - 1, 1, 0) * params_error
-    com_err = (2 * u_com_err - 1) * com_error * moved
-    if push == "horizontal":
-        angle = 2 * np.pi * angle
-        direction = np.stack([np.cos(angle), np.sin(angle), np.zeros(worlds)], axis=1)
-    else:
-        direction = normal / np.linalg.norm(normal, axis=1, keepdims=True)
-    if nominal:
-        nom = RobotParams.nominal(robot)
-        params = controller_params(
-            robot, np.tile(nom.ratio, (worlds, 1)), np.zeros((worlds, n)), np.zeros_like(com)
-        )
-    else:
-        params = controller_params(
-            robot, ratio * (1 + err[0]), friction * (1 + err[1]), com + com_err
-        )
-    return truth, params, direction
-
-
-def _world_draws(rng: np.random.Generator, n: int, nb: int) -> tuple[np.ndarray, ...]:
-    """One world's uniform [0, 1) draws (ratio (n,), friction (n,), COM (nb, 3), controller
-    errors (2, n), controller COM errors (nb, 3), push angle ()) and its normal (3,) push
-    direction, in this order whatever the push kind."""
-    u = lambda *shape: rng.uniform(0.0, 1.0, shape)  # noqa: E731
-    return u(n), u(n), u(nb, 3), u(2, n), u(nb, 3), u(), rng.normal(size=3)
-
-
-def model_errors(
-    robot: Robot, truth: BatchTruth, params: dict[str, np.ndarray]
-) -> dict[str, np.ndarray]:
-    """Per-world model error of the controller's params against the truth: RMS over joints of
-    the relative ratio and friction errors, RMS COM error over the moving links' axes (m), and
-    the pooled relative gravity-current error: RMS of r_c g_c(q) - r_t g_t(q) over ``POSES``
-    random poses and all joints together, relative to the RMS of r_t g_t(q)
-    (``evaluate.gravity_current_error_batch(pooled=True)``, in batches of one shape, so that
-    a world's number does not depend on the others)."""
-    nominal_com = np.asarray(robot.nominal_params().com)
-    moved = robot.tree.moves.any(axis=0)
-    true_com = nominal_com[None] + truth.com_offset
-    poses = random_poses(robot, POSES, seed=0)
-    rms = lambda a, axes: np.sqrt(np.mean(a**2, axis=axes))  # noqa: E731
-    return {
-        "ratio_error": rms(params["ratio"] / truth.ratio - 1, 1),
-        "friction_error": rms(params["friction"] / truth.friction - 1, 1),
-        "com_error_m": rms((params["com"] - true_com)[:, moved], (1, 2)),
-        "gravity_current_error_pooled": gravity_current_error_batch(
-            robot,
-            truth.ratio,
-            truth.com_offset,
-            params["ratio"],
-            params["com"] - nominal_com[None],
-            poses,
-            pooled=True,
-            fixed=True,  # batches of one shape: a world's error whatever the chunk
-        ),
-    }
-
-
 # ----------------------------------------------------------------------------- the study
-#: m, the radius of the paper's half circle (Exp. 2).
-PAPER_RADIUS = 0.315
-
-
-def trajectory_for(robot: Robot, passes: int) -> tuple[np.ndarray, Trajectory]:
-    """(start (3,) m, the half circle from it): the end effector at the ``home`` pose (the
-    worlds settle within a fraction of a mm of it; the controller starts from where each is).
-    The paper's radius (``PAPER_RADIUS``), or the start's horizontal distance from the arm's
-    vertical axis where that is smaller (a smaller arm)."""
-    start = np.asarray(robot.site_position(robot.pose("home"), robot.end_effector), float)
-    radius = float(np.hypot(start[0], start[1]))
-    spec = f"half-circle:passes={passes}"
-    if radius < PAPER_RADIUS:
-        spec += f",r={radius:.4f}"
-    return start, parse_trajectory(spec).build(start)
-
-
-def _stats(values: np.ndarray, quantiles: tuple = (50, 95)) -> dict[str, float | None]:
-    values = np.asarray(values, float)
-    names = {5: "p5", 50: "median", 95: "p95"}
-    if values.size == 0:
-        return {names[q]: None for q in quantiles} | {"min": None, "max": None}
-    out = {names[q]: float(np.percentile(values, q)) for q in quantiles}
-    return out | {"min": float(values.min()), "max": float(values.max())}
-
-
 @dataclasses.dataclass(frozen=True)
 class ControlSettings:
     """What a control study runs (checked by ``run_study``, InputError).
@@ -301,20 +144,8 @@ class _Study(NamedTuple):
 
 def _setup(settings: ControlSettings, robot: Robot | None) -> _Study:
     """``settings`` checked (InputError) and the study's shared parts made."""
-    force, duration = settings.force, settings.duration
-    worlds, passes = int(settings.worlds), int(settings.passes)
-    if worlds < 1:
-        raise InputError(f"--worlds must be >= 1, got {worlds}")
-    if passes < 1:
-        raise InputError(f"--passes must be >= 1, got {passes}")
-    if not (math.isfinite(force) and force > 0):
-        raise InputError(f"--force must be > 0 N, got {force}")
-    for name in ("params_error", "com_error", "noise"):
-        value = getattr(settings, name)
-        if not (math.isfinite(value) and value >= 0):
-            raise InputError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
-    if settings.params_error >= 1:
-        raise InputError(f"--params-error must be < 1 (relative), got {settings.params_error}")
+    _check(settings)
+    duration, worlds, passes = settings.duration, int(settings.worlds), int(settings.passes)
     robot = load_robot(MODEL) if robot is None else robot
     preset = settings.gains if isinstance(settings.gains, str) else None
     gains = settings.gains if preset is None else impedance_gains(robot, preset)
@@ -337,21 +168,66 @@ def _setup(settings: ControlSettings, robot: Robot | None) -> _Study:
     return _Study(settings, robot, gains, duration, steps, trajectory, reference, policy, sim)
 
 
+def _check(settings: ControlSettings) -> None:
+    """InputError when a count, the push or an error of ``settings`` is out of range."""
+    force, worlds, passes = settings.force, int(settings.worlds), int(settings.passes)
+    if worlds < 1:
+        raise InputError(f"--worlds must be >= 1, got {worlds}")
+    if passes < 1:
+        raise InputError(f"--passes must be >= 1, got {passes}")
+    if not (math.isfinite(force) and force > 0):
+        raise InputError(f"--force must be > 0 N, got {force}")
+    for name in ("params_error", "com_error", "noise"):
+        value = getattr(settings, name)
+        if not (math.isfinite(value) and value >= 0):
+            raise InputError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
+    if settings.params_error >= 1:
+        raise InputError(f"--params-error must be < 1 (relative), got {settings.params_error}")
+
+
 def chunk_results(study: _Study, rows: range, progress: bool = False) -> dict:
-    """The worlds ``rows`` (global ids) in one closed-loop run: {"world": ``WORLD_ARRAYS``,
-    "timing": s}. A world's numbers depend on its id alone (its draws and noise)."""
+    """The worlds ``rows`` in one closed-loop run: drawn, run, measured.
+
+    A world's numbers depend on its id alone (its draws and noise).
+
+    Args:
+        study: the study set up (``run_study``).
+        rows: the chunk's global world ids.
+        progress: show a progress bar.
+
+    Returns:
+        {"world": {name: (W, ...) array} of ``WORLD_ARRAYS``, "timing": {"prepare",
+        "compile", "run": s}}.
+    """
     st, sim = study.settings, study.sim
     truth, params, direction = draw_worlds(
         study.robot, len(rows), st.seed, st.params_error, st.com_error, st.nominal, st.noise,
         st.push, first=rows.start,
     )  # fmt: skip
-    stiffness = np.asarray(study.gains.stiffness, float)
-    expected = st.force * (direction**2 / stiffness).sum(axis=1)  # m along u: F u^T K^-1 u
     compiled_before = sim.compile_seconds
+    result = _closed_loop(study, rows, truth, params, direction, progress)
+    world = _phase_metrics(study, result, direction) | model_errors(study.robot, truth, params)
+    timing = sim.last_timing
+    return {"world": {k: np.asarray(world[k]) for k in WORLD_ARRAYS}, "timing": {
+        "prepare": timing["prepare"], "compile": sim.compile_seconds - compiled_before,
+        "run": timing["settle"] + timing["plan"]}}  # fmt: skip
+
+
+def _closed_loop(
+    study: _Study,
+    rows: range,
+    truth: BatchTruth,
+    params: dict[str, np.ndarray],
+    direction: np.ndarray,
+    progress: bool,
+) -> ClosedLoopResult:
+    """The worlds ``rows`` under their controllers ``params``, pushed along ``direction``
+    (``MjxSimulator.run_closed_loop``)."""
+    st = study.settings
     desc = f"worlds {rows.start}-{rows.stop - 1}"
     bar = tqdm(total=study.steps, unit="step", desc=desc, disable=not progress, leave=False)
     try:
-        result = sim.run_closed_loop(
+        return study.sim.run_closed_loop(
             truth, study.policy, params, None, study.steps, reference=study.reference,
             pushes=ramped_pushes(direction, st.force), initial_pose="home", seed=st.seed,
             progress=lambda done, _total: bar.update(done - bar.n),
@@ -359,18 +235,26 @@ def chunk_results(study: _Study, rows: range, progress: bool = False) -> dict:
         )  # fmt: skip
     finally:
         bar.close()
+
+
+def _phase_metrics(
+    study: _Study, result: ClosedLoopResult, direction: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Each world's tracking error, compliance ratio, static offset and fault from the
+    policy's phase sums; a figure counts only when its phase ended before any fault."""
+    stiffness = np.asarray(study.gains.stiffness, float)
+    expected = study.settings.force * (direction**2 / stiffness).sum(axis=1)  # F u^T K^-1 u, m
     s = result.state
     faulted = result.fault_step >= 0
     fault_t = np.where(faulted, result.fault_step * CONTROL_PERIOD, np.inf)
     with np.errstate(invalid="ignore", divide="ignore"):
-        # a world's figure counts only when its phase ended before any fault
         rms = np.where(faulted, np.nan, np.sqrt(s["track_sq"] / s["track_n"]))
         track_max = np.where(faulted, np.nan, s["track_max"])
         offset = s["base_sum"] / s["base_n"][:, None]
         moved = s["push_sum"] / s["push_n"][:, None] - offset
         ratio = (moved * direction).sum(axis=1) / expected
     measured = fault_t >= HELD[1]
-    world = {
+    return {
         "tracking_rms_m": rms,
         "tracking_max_m": track_max,
         "compliance_ratio": np.where(measured, ratio, np.nan),
@@ -379,12 +263,7 @@ def chunk_results(study: _Study, rows: range, progress: bool = False) -> dict:
         "faulted": faulted,
         "fault_time_s": np.where(faulted, fault_t, np.nan),
         "fault_code": np.asarray(result.fault_code),
-        **model_errors(study.robot, truth, params),
     }
-    timing = sim.last_timing
-    return {"world": {k: np.asarray(world[k]) for k in WORLD_ARRAYS}, "timing": {
-        "prepare": timing["prepare"], "compile": sim.compile_seconds - compiled_before,
-        "run": timing["settle"] + timing["plan"]}}  # fmt: skip
 
 
 def run_study(
@@ -396,23 +275,32 @@ def run_study(
     resume: bool = False,
     processes: Processes = ONE_PROCESS,
 ) -> dict | None:
-    """The study's numbers as a JSON-able dict (see the module doc); ``progress``: show
-    progress bars; ``robot``: the ``MODEL`` robot, whose simulator and policy it keeps
-    (default: freshly loaded).
+    """The whole study of ``settings``: set up, every chunk run (``chunk_results``), then the
+    report made from the chunks' joined per-world arrays, whatever the chunking (see the
+    module doc).
 
-    The worlds run in chunks of ``chunk_worlds`` (``chunk_results``) and the report is made
-    from their joined per-world arrays, whatever the chunking. With a ``folder`` (the output
-    folder, created and locked by the caller) each finished chunk is written to
-    ``folder``/chunks and ``resume`` keeps those of an interrupted run of the same settings;
-    with several ``processes`` each runs its own chunks into ``folder`` and process 0 alone
-    returns the report (the others None), as ``studies.calibration.run_study``.
+    Args:
+        settings: what the study runs.
+        progress: show progress bars.
+        robot: the ``MODEL`` robot, whose simulator and policy it keeps (None: freshly
+            loaded).
+        folder: the output folder, created and locked by the caller: each finished chunk is
+            written to ``folder``/chunks (None: chunks in memory).
+        resume: keep the chunks in ``folder`` of an interrupted run of the same settings.
+        processes: this process among several, each running its own chunks into ``folder``,
+            as ``studies.calibration.run_study``.
+
+    Returns:
+        The report (JSON-able but for NaN) on process 0; None on the others.
+
+    Raises:
+        InputError: settings out of range, or ``resume`` or several processes without a
+            folder.
     """
     t_begin = time.perf_counter()
     if folder is None and (processes.count > 1 or resume):
         raise InputError("--resume and --distributed need an output folder")
-    store = None if folder is None else ChunkStore(Path(folder) / CHUNKS_DIR)
-    if resume and store is not None and settings.chunk_worlds is None:  # on any device count
-        settings = dataclasses.replace(settings, chunk_worlds=store.earlier("chunk_worlds"))
+    store, settings = chunk_store(folder, settings, resume)
     study = together(processes, lambda: _setup(settings, robot), "to set the study up")
     chunks = study_chunks([range(int(settings.worlds))], study.settings.chunk_worlds)
     parts = run_chunks(
@@ -421,21 +309,24 @@ def run_study(
     )  # fmt: skip
     if parts is None:
         return None
-    world = {k: np.concatenate([p["world"][k] for p in parts]) for k in WORLD_ARRAYS}
-    timing = {k: float(sum(np.sum(p["timing"][k]) for p in parts))
-              for k in ("prepare", "compile", "run")}  # fmt: skip
+    world, timing = _joined(parts)
     return _report(study, world, timing, time.perf_counter() - t_begin, processes.count)
 
 
+def _joined(parts: list[dict]) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """(per-world arrays in world order, summed run times s) of every chunk's ``parts``."""
+    world = {k: np.concatenate([p["world"][k] for p in parts]) for k in WORLD_ARRAYS}
+    timing = {k: float(sum(np.sum(p["timing"][k]) for p in parts))
+              for k in ("prepare", "compile", "run")}  # fmt: skip
+    return world, timing
+
+
 def _report(study: _Study, world: dict, timing: dict, total: float, processes: int) -> dict:
-    """The report of a study from its joined per-world arrays ``world`` (``WORLD_ARRAYS``)."""
+    """The report of a study from its joined per-world arrays ``world`` (``WORLD_ARRAYS``),
+    summed run times ``timing`` s, ``total`` s and ``processes`` count."""
     st, sim = study.settings, study.sim
-    preset = st.gains if isinstance(st.gains, str) else None
-    faulted = world["faulted"]
-    ok, measured = ~faulted, np.isfinite(world["compliance_ratio"])
-    static = np.linalg.norm(world["static_offset_xyz_m"], axis=1)
     steps, run_s = study.steps, timing["run"]
-    report = {
+    return {
         "study": "control",
         "seed": int(st.seed),
         "worlds": int(st.worlds),
@@ -444,74 +335,119 @@ def _report(study: _Study, world: dict, timing: dict, total: float, processes: i
         "host": platform.node(),
         "processes": processes,
         "chunk_worlds": st.chunk_worlds,
-        "config": {
-            "model": study.robot.name,
-            "gains": json_ready(dataclasses.asdict(study.gains)),
-            "force_N": st.force,
-            "push_direction": st.push,
-            "tracking_duration_s": study.duration,
-            "trajectory": study.trajectory.description,
-            "passes": int(st.passes),
-            "steps": steps,
-            "controller": "nominal" if st.nominal else "identified-like",
-            "params_error": st.params_error,
-            "com_error_m": st.com_error,
-            "current_noise_A": st.noise,
-            "truth": "paper ratio x U(0.9, 1.1), friction x U(0.8, 1.2), COM U(+-4 mm)",
-            "timeline_s": {
-                "baseline": BASELINE,
-                "push": [PUSH_START, RELEASE],
-                "held": HELD,
-                "tracking": [TRACK_START, TRACK_START + study.duration],
-            },
-        },
-        "summary": {
-            "tracking_rms_m": _stats(world["tracking_rms_m"][ok]),
-            "tracking_max_m": _stats(world["tracking_max_m"][ok]),
-            "compliance_ratio": _stats(world["compliance_ratio"][measured], (5, 50, 95)),
-            "static_offset_m": _stats(static[measured]),
-            "faulted": int(faulted.sum()),
-            "faulted_fraction": float(faulted.mean()),
-            "note": "over the worlds that did not fault before the phase ended",
-        },
-        "per_world": {
-            **{
-                k: world[k].tolist()
-                for k in ("tracking_rms_m", "tracking_max_m", "compliance_ratio")
-            },  # fmt: skip
-            "static_offset_m": static.tolist(),
-            "static_offset_xyz_m": world["static_offset_xyz_m"].tolist(),
-            "push_direction": world["push_direction"].tolist(),
-            "faulted": faulted.tolist(),
-            "fault_time_s": world["fault_time_s"].tolist(),
-            "fault": [", ".join(fault_names(c)) for c in world["fault_code"]],
-            **{k: world[k].tolist() for k in WORLD_ARRAYS[-4:]},
-        },
+        "config": _config(study),
+        "summary": _summary_stats(world),
+        "per_world": _per_world(world),
         "timing_s": {
             **timing,
             "total": total,
             "world_steps_per_s": st.worlds * (steps + SETTLE_STEPS) / run_s if run_s > 0 else None,
         },
     }
-    if preset is not None:
-        report["config"]["gains_preset"] = preset
-    return report
+
+
+def _config(study: _Study) -> dict:
+    """The report's configuration: model, gains (and their preset), push, trajectory,
+    controller, errors, truth and timeline."""
+    st = study.settings
+    config = {
+        "model": study.robot.name,
+        "gains": json_ready(dataclasses.asdict(study.gains)),
+        "force_N": st.force,
+        "push_direction": st.push,
+        "tracking_duration_s": study.duration,
+        "trajectory": study.trajectory.description,
+        "passes": int(st.passes),
+        "steps": study.steps,
+        "controller": "nominal" if st.nominal else "identified-like",
+        "params_error": st.params_error,
+        "com_error_m": st.com_error,
+        "current_noise_A": st.noise,
+        "truth": "paper ratio x U(0.9, 1.1), friction x U(0.8, 1.2), COM U(+-4 mm)",
+        "timeline_s": {
+            "baseline": BASELINE,
+            "push": [PUSH_START, RELEASE],
+            "held": HELD,
+            "tracking": [TRACK_START, TRACK_START + study.duration],
+        },
+    }
+    if isinstance(st.gains, str):
+        config["gains_preset"] = st.gains
+    return config
+
+
+def _summary_stats(world: dict) -> dict:
+    """The statistics over the worlds that did not fault before each phase ended."""
+    faulted = world["faulted"]
+    ok, measured = ~faulted, np.isfinite(world["compliance_ratio"])
+    static = np.linalg.norm(world["static_offset_xyz_m"], axis=1)
+    return {
+        "tracking_rms_m": _stats(world["tracking_rms_m"][ok]),
+        "tracking_max_m": _stats(world["tracking_max_m"][ok]),
+        "compliance_ratio": _stats(world["compliance_ratio"][measured], (5, 50, 95)),
+        "static_offset_m": _stats(static[measured]),
+        "faulted": int(faulted.sum()),
+        "faulted_fraction": float(faulted.mean()),
+        "note": "over the worlds that did not fault before the phase ended",
+    }
+
+
+def _per_world(world: dict) -> dict:
+    """The per-world arrays as lists, the static offset's norm (m) and the faults' names."""
+    return {
+        **{k: world[k].tolist() for k in ("tracking_rms_m", "tracking_max_m", "compliance_ratio")},
+        "static_offset_m": np.linalg.norm(world["static_offset_xyz_m"], axis=1).tolist(),
+        "static_offset_xyz_m": world["static_offset_xyz_m"].tolist(),
+        "push_direction": world["push_direction"].tolist(),
+        "faulted": world["faulted"].tolist(),
+        "fault_time_s": world["fault_time_s"].tolist(),
+        "fault": [", ".join(fault_names(c)) for c in world["fault_code"]],
+        **{k: world[k].tolist() for k in WORLD_ARRAYS[-4:]},
+    }
+
+
+def _stats(values: np.ndarray, quantiles: tuple = (50, 95)) -> dict[str, float | None]:
+    """The ``quantiles`` (of 5, 50, 95: p5, median, p95), min and max of ``values`` (None: no
+    values)."""
+    values = np.asarray(values, float)
+    names = {5: "p5", 50: "median", 95: "p95"}
+    if values.size == 0:
+        return {names[q]: None for q in quantiles} | {"min": None, "max": None}
+    out = {names[q]: float(np.percentile(values, q)) for q in quantiles}
+    return out | {"min": float(values.min()), "max": float(values.max())}
 
 
 # ----------------------------------------------------------------------------- outputs
 def write_report(report: dict, out: Path) -> Path:
-    """DIR/study.json, written atomically (NaN as null)."""
+    """The report written atomically (NaN as null).
+
+    Args:
+        report: the study's report (``run_study``).
+        out: the report folder (it exists).
+
+    Returns:
+        The path written, ``out``/study.json.
+    """
     with writing(out / STUDY_JSON):
         return write_json_atomic(out / STUDY_JSON, json_ready(report))
 
 
 def _mm(stats: dict, key: str) -> str:
+    """``stats[key]`` (m) in mm with two decimals ("-": none)."""
     v = stats.get(key)
     return "-" if v is None else f"{1e3 * v:.2f}"
 
 
 def summary(report: dict, path: Path) -> str:
-    """Two lines for people: tracking, compliance, faults; run times and the report's path."""
+    """Two lines for people: tracking, compliance, faults; run times and the report's path.
+
+    Args:
+        report: the study's report (``run_study``).
+        path: where it was written.
+
+    Returns:
+        The two lines, joined by a newline.
+    """
     sm, tm = report["summary"], report["timing_s"]
     c = sm["compliance_ratio"]
     fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
@@ -536,26 +472,23 @@ class StudyOutputs(NamedTuple):
 
 
 def study_into(
-    out: Path,
-    settings: ControlSettings,
-    *,
-    progress: bool = True,
-    robot: Robot | None = None,
-    resume: bool = False,
-    processes: Processes = ONE_PROCESS,
+    out: Path, settings: ControlSettings, **options: Unpack[StudyOptions]
 ) -> StudyOutputs | None:
-    """``run_study`` written into the folder ``out``, created and locked first
-    (``files.output_folder``: FileError before minutes of simulation): study.json, then the
-    figures (``control_figures.write_figures``); the finished chunks stay in ``out``/chunks
-    until then (``resume``). With several ``processes``, process 0 holds the folder and writes
-    the report; the others write their chunks into it and return None."""
+    """``run_study`` written into one folder (``study_chunks.into_folder``): study.json, then
+    the figures (``control_figures.write_figures``).
 
-    def run(folder: Path) -> dict | None:
-        shown = progress and processes.index == 0
-        return run_study(settings, progress=shown, robot=robot, folder=folder, resume=resume,
-                         processes=processes)  # fmt: skip
+    Args:
+        out: the report folder; the finished chunks stay in ``out``/chunks until the report
+            is written.
+        settings: the study's settings.
+        options: ``StudyOptions`` (progress, robot, resume, processes).
 
-    def write(folder: Path, report: dict) -> StudyOutputs:
-        return StudyOutputs(report, [write_report(report, folder), *write_figures(report, folder)])
+    Returns:
+        The report and the files written (study.json first) on process 0, else None.
+    """
+    return into_folder(out, run_study, settings, _write, **options)
 
-    return into_folder(out, processes, run, write)
+
+def _write(folder: Path, report: dict) -> StudyOutputs:
+    """The ``report`` written into ``folder``: study.json, then the figures."""
+    return StudyOutputs(report, [write_report(report, folder), *write_figures(report, folder)])

@@ -16,11 +16,13 @@ A chunk file holds flat arrays: ``<part>.<name>`` for the parts of ``ChunkStore.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import shutil
 from collections.abc import Callable, Mapping, Sequence
+from functools import partial
 from pathlib import Path
-from typing import Any, NamedTuple, TypeVar
+from typing import TYPE_CHECKING, Any, NamedTuple, TypedDict, TypeVar
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -29,7 +31,10 @@ from jaxcomp.errors import InputError
 from jaxcomp.files import atomic_output, output_folder, reading, writing
 from jaxcomp.recording import setting_differences
 from jaxcomp.robot_params import json_ready, write_json_atomic
-from jaxcomp.studies.processes import Processes, together
+from jaxcomp.studies.processes import ONE_PROCESS, Processes, together
+
+if TYPE_CHECKING:
+    from jaxcomp.robot import Robot
 
 #: The folder of the chunk files inside a study's output folder.
 CHUNKS_DIR = "chunks"
@@ -50,9 +55,18 @@ class Chunk(NamedTuple):
 
 
 def study_chunks(groups: Sequence[range], size: int) -> list[Chunk]:
-    """The chunks of at most ``size`` worlds of the contiguous plan ``groups`` (covering the
-    worlds 0..N-1 in order): each group cut from its first world, the last chunk of a group
-    shorter. InputError when ``size`` < 1."""
+    """The chunks of a study's worlds, each group cut from its first world.
+
+    Args:
+        groups: the contiguous plan groups, covering the worlds 0..N-1 in order.
+        size: worlds per chunk at most (``--chunk-worlds``).
+
+    Returns:
+        The chunks in world order, the last chunk of a group shorter.
+
+    Raises:
+        InputError: ``size`` is not an integer >= 1.
+    """
     if isinstance(size, bool) or int(size) != size or size < 1:
         raise InputError(f"--chunk-worlds must be an integer >= 1, got {size}")
     size = int(size)
@@ -62,12 +76,26 @@ def study_chunks(groups: Sequence[range], size: int) -> list[Chunk]:
 
 
 def flatten(parts: Mapping[str, Mapping[str, Any]]) -> dict[str, np.ndarray]:
-    """{part: {name: array}} as the flat {"part.name": array} of a chunk file."""
+    """A chunk's parts as the flat arrays of its file.
+
+    Args:
+        parts: {part: {name: array}}.
+
+    Returns:
+        {"part.name": array}.
+    """
     return {f"{p}.{k}": np.asarray(v) for p, arrays in parts.items() for k, v in arrays.items()}
 
 
 def unflatten(flat: Mapping[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]]:
-    """A chunk file's flat arrays as {part: {name: array}} (``flatten`` undone)."""
+    """A chunk file's flat arrays as its parts (``flatten`` undone).
+
+    Args:
+        flat: {"part.name": array}.
+
+    Returns:
+        {part: {name: array}}.
+    """
     out: dict[str, dict[str, np.ndarray]] = {}
     for key, value in flat.items():
         part, _, name = key.partition(".")
@@ -76,22 +104,43 @@ def unflatten(flat: Mapping[str, np.ndarray]) -> dict[str, dict[str, np.ndarray]
 
 
 class ChunkStore:
-    """The finished chunks of a study in ``folder`` (``OUT/chunks``), see the module
-    docstring. ``prepare`` first (one process), then ``done``/``write``/``read`` per chunk
-    (any process sharing the folder), ``remove`` once the report is written."""
+    """The finished chunks of a study in ``folder``, see the module docstring.
+
+    ``prepare`` first (one process), then ``done``/``write``/``read`` per chunk (any process
+    sharing the folder), ``remove`` once the report is written.
+
+    Args:
+        folder: the chunks' folder, ``OUT/chunks``.
+    """
 
     def __init__(self, folder: Path):
         self.folder = Path(folder)
 
     def path(self, chunk: Chunk) -> Path:
-        """The file of ``chunk``'s results."""
+        """The file of ``chunk``'s results.
+
+        Args:
+            chunk: a chunk of the study.
+
+        Returns:
+            ``folder``/worlds_<first>_<stop>.npz.
+        """
         return self.folder / f"worlds_{chunk.rows.start:09d}_{chunk.rows.stop:09d}.npz"
 
     def prepare(self, settings: Mapping[str, Any], resume: bool) -> int:
-        """Get the folder ready for a study of ``settings`` (JSON-able): with ``resume``, keep
-        the chunk files of an earlier run of the same settings (InputError naming what
-        differs otherwise); without it, refuse a folder that holds an earlier run's chunks
-        (InputError: ``--resume`` continues it). The number of chunk files kept."""
+        """Get the folder ready for a study of ``settings``.
+
+        Args:
+            settings: what the chunks belong to (JSON-able).
+            resume: keep the chunk files of an earlier run of the same settings.
+
+        Returns:
+            The number of chunk files kept.
+
+        Raises:
+            InputError: resumed with other settings (naming what differs), or not resumed
+                in a folder that holds an earlier run's chunks (``--resume`` continues it).
+        """
         stored = self.folder / SETTINGS_FILE
         files = sorted(self.folder.glob("worlds_*.npz")) if self.folder.is_dir() else []
         now = json.loads(json.dumps(json_ready(dict(settings))))
@@ -120,24 +169,56 @@ class ChunkStore:
         return 0
 
     def earlier(self, name: str) -> Any:
-        """Setting ``name`` of the run whose chunks the folder holds (None: none stored)."""
+        """A setting of the run whose chunks the folder holds.
+
+        Args:
+            name: the setting's name (``prepare``'s ``settings``).
+
+        Returns:
+            Its value; None when none is stored.
+        """
         stored = _read_json(self.folder / SETTINGS_FILE)
         return stored.get(name) if isinstance(stored, dict) else None
 
     def done(self, chunk: Chunk) -> bool:
-        """Whether ``chunk``'s results are on disk."""
+        """Whether ``chunk``'s results are on disk.
+
+        Args:
+            chunk: a chunk of the study.
+
+        Returns:
+            True when its file exists.
+        """
         return self.path(chunk).is_file()
 
     def write(self, chunk: Chunk, parts: Mapping[str, Mapping[str, Any]]) -> Path:
-        """Write ``chunk``'s results ({part: {name: array}}) atomically."""
+        """Write ``chunk``'s results atomically.
+
+        Args:
+            chunk: a chunk of the study.
+            parts: its results, {part: {name: array}}.
+
+        Returns:
+            The file written (``path``).
+        """
         path = self.path(chunk)
         with atomic_output(path) as tmp, open(tmp, "wb") as f:
             np.savez(f, **flatten(parts))
         return path
 
     def read(self, chunk: Chunk) -> dict[str, dict[str, np.ndarray]]:
-        """``chunk``'s results as written ({part: {name: array}}); InputError when missing
-        (a process that does not share the folder wrote it elsewhere)."""
+        """``chunk``'s results as written.
+
+        Args:
+            chunk: a chunk of the study.
+
+        Returns:
+            {part: {name: array}}.
+
+        Raises:
+            InputError: its file is missing (a process that does not share the folder wrote
+                it elsewhere).
+        """
         path = self.path(chunk)
         if not path.is_file():
             raise InputError(
@@ -170,10 +251,21 @@ def run_chunks(
     resume: bool,
     progress: bool,
 ) -> list[dict] | None:
-    """Every chunk's parts, in order: each process computes its own chunks (``Processes.mine``;
-    ``compute(chunk)`` -> {part: {name: array}}) into ``store`` (when given: ``settings``
-    checked, ``resume`` keeping the finished ones there) with a progress bar over the worlds;
-    process 0 returns all chunks' parts once every process is done, the others None."""
+    """Every chunk's parts, each process computing its own chunks (``Processes.mine``).
+
+    Args:
+        processes: this process among the study's.
+        chunks: all the study's chunks, in order.
+        store: where the finished chunks go (None: kept in memory, one process).
+        compute: ``compute(chunk)`` -> {part: {name: array}}.
+        settings: what the chunks belong to (``ChunkStore.prepare``).
+        resume: keep the finished chunks in ``store``.
+        progress: show a progress bar over the worlds.
+
+    Returns:
+        All chunks' parts in order on process 0, once every process is done; None on the
+        others.
+    """
     lead = processes.index == 0
     if store is not None:
         together(processes, lambda: lead and store.prepare(settings, resume),
@@ -201,24 +293,87 @@ def run_chunks(
 
 
 R = TypeVar("R")
+S = TypeVar("S")
 T = TypeVar("T")
 
 
+def chunk_store(folder: Path | None, settings: S, resume: bool) -> tuple[ChunkStore | None, S]:
+    """The chunk store of a study's output folder, and the study's settings as resumed.
+
+    Args:
+        folder: the study's output folder (None: the chunks stay in memory).
+        settings: the study's settings, a dataclass with ``chunk_worlds`` (None: the default).
+        resume: the study continues an interrupted run in ``folder``.
+
+    Returns:
+        (``ChunkStore`` of ``folder``/chunks, None without a folder; ``settings``, resumed
+        without a chunk size: with the interrupted run's, whatever the device count).
+    """
+    store = None if folder is None else ChunkStore(Path(folder) / CHUNKS_DIR)
+    if resume and store is not None and settings.chunk_worlds is None:
+        settings = dataclasses.replace(settings, chunk_worlds=store.earlier("chunk_worlds"))
+    return store, settings
+
+
+class StudyOptions(TypedDict, total=False):
+    """How a study runs into its report folder: the keywords of ``into_folder`` and of every
+    study's ``study_into``.
+
+    Attributes:
+        progress: show progress bars (on process 0 only; default True).
+        robot: the studied robot, whose simulator and compiled programs the study keeps
+            (default None: the studies' ``MODEL``, freshly loaded).
+        resume: keep the finished chunks of an interrupted run of the same settings in the
+            folder (default False).
+        processes: this process among the study's (``processes.start_processes``; default
+            ``ONE_PROCESS``): process 0 holds the folder and writes the report, the others
+            write their chunks into it.
+    """
+
+    progress: bool
+    robot: Robot | None
+    resume: bool
+    processes: Processes
+
+
 def into_folder(
-    out: Path, processes: Processes, run: Callable[[Path], R], write: Callable[[Path, R], T]
+    out: Path,
+    run_study: Callable[..., R | None],
+    settings: Any,
+    write: Callable[[Path, R], T],
+    *,
+    progress: bool = True,
+    robot: Robot | None = None,
+    resume: bool = False,
+    processes: Processes = ONE_PROCESS,
 ) -> T | None:
-    """A chunked study ``run(folder)`` into the output folder ``out``: process 0 creates and
-    locks it first (``files.output_folder``: FileError before minutes of simulation), the
-    others wait for it and run their chunks into it; process 0 then writes the outputs
-    (``write(folder, result)``) and removes the chunk files, and returns what ``write`` does
-    (the others None). On error nothing is written but the finished chunks."""
+    """A chunked study run into its report folder: the one call of every study.
+
+    Process 0 creates and locks ``out`` first (``files.output_folder``: FileError before
+    minutes of simulation), the others wait for it and run their chunks into it; process 0
+    then writes the outputs and removes the chunk files. On error nothing is written but the
+    finished chunks (``resume`` keeps them), and a folder it created and left empty is
+    removed.
+
+    Args:
+        out: the study's report folder.
+        run_study: the study's ``run_study(settings, folder=, progress=, robot=, resume=,
+            processes=)``: its result on process 0, None on the others.
+        settings: the study's settings.
+        write: ``write(folder, result)``: the outputs written, what ``into_folder`` returns.
+        progress, robot, resume, processes: ``StudyOptions``.
+
+    Returns:
+        What ``write`` returns on process 0; None on the others.
+    """
     where = "to open the output folder"
+    run = partial(run_study, settings, robot=robot, resume=resume, processes=processes)
     if processes.index != 0:
         together(processes, lambda: None, where)
-        run(Path(out))
+        run(folder=Path(out), progress=False)
         return None
     with contextlib.ExitStack() as stack:
         folder = together(processes, lambda: stack.enter_context(output_folder(out)), where)
-        done = write(folder, run(folder))
+        done = write(folder, run(folder=folder, progress=progress))
         ChunkStore(folder / CHUNKS_DIR).remove()
         return done
