@@ -26,7 +26,7 @@ import numpy as np
 
 from jaxcomp.hardware import Simulator, TrueRobot
 from jaxcomp.hardware.interface import HardwareFault
-from jaxcomp.identify import jax_fit
+from jaxcomp.identify import joint_fit
 from jaxcomp.identify.baseline import fit_baseline
 from jaxcomp.identify.evaluate import gravity_current_error_batch, random_poses
 from jaxcomp.identify.plan import CalibrationPlan, Sweep
@@ -129,7 +129,7 @@ def main() -> None:
                 print(f"{arm:<10}{seed:>5}  fault: {rec}")
                 continue
             t0 = time.perf_counter()
-            fit = jax_fit.fit(rec)
+            fit = joint_fit.fit(rec)
             seconds = time.perf_counter() - t0
             fits = {"jax": fit}
             if not args.no_scipy:

@@ -35,7 +35,7 @@ from paper_common import (
 )
 
 from jaxcomp.hardware import TrueRobot
-from jaxcomp.identify import jax_fit
+from jaxcomp.identify import joint_fit
 from jaxcomp.identify.baseline import fit_baseline
 from jaxcomp.identify.evaluate import gravity_current_error, random_poses
 from jaxcomp.robot_params import RobotParams
@@ -79,7 +79,7 @@ def run_rounds(truth: TrueRobot, rounds: int, short: bool, seed: int) -> list[di
         start = time.perf_counter()
         rec = record_calibration(dataclasses.replace(truth, seed=noise_seed(seed, k)), plan)
         recorded = time.perf_counter()
-        fits: dict[str, RobotParams] = {"jax": jax_fit.fit(rec), "scipy": fit_baseline(rec)}
+        fits: dict[str, RobotParams] = {"jax": joint_fit.fit(rec), "scipy": fit_baseline(rec)}
         row = {"record_s": recorded - start, "samples": rec.n_samples}
         for name, p in fits.items():
             row[name] = p

@@ -7,7 +7,11 @@
 - ``recorder``: recording a plan on an ``Arm`` into a recording (``jaxcomp.recording``);
 - ``bins``: the steady samples of a sweep and their angle-bin means;
 - ``moments``: sweep moments, a recording reduced exactly for the joint fit;
-- ``jax_fit``: the joint JAX fit; ``baseline``: the paper's fit (scipy, pinocchio);
+- the joint JAX fit: ``fit_model`` (what it needs of the robot), ``fit_stats`` (the features of
+  sweeps and transfers, reduced to sufficient statistics), ``fit_solver`` (priors and the
+  solve), ``joint_fit`` (recordings fitted jointly into params), ``batched_fit`` (many
+  recordings, each on its own, in vmapped batches);
+- ``baseline``: the paper's fit (scipy, pinocchio);
 - ``traced``: traced programs kept on disk between processes (``jax.export``);
 - ``evaluate``: errors of fitted params against a known truth; ``plots``: calibration plots.
 

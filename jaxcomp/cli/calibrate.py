@@ -27,7 +27,7 @@ def _fit(recordings, method: str, com_prior: float | None = None, transfers: boo
     from jaxcomp.plausibility import check_params
 
     if method == "jax":
-        from jaxcomp.identify.jax_fit import fit
+        from jaxcomp.identify.joint_fit import fit
 
         params = fit(recordings, com_prior=com_prior, transfers=transfers)
     else:
@@ -44,7 +44,7 @@ def _fit(recordings, method: str, com_prior: float | None = None, transfers: boo
 
 def _warn(params) -> None:
     """The fit's warnings (confounded or unexcited ratios, and the cure), one line each."""
-    from jaxcomp.identify.jax_fit import warnings_of
+    from jaxcomp.identify.joint_fit import warnings_of
 
     for line in warnings_of(params):
         click.echo(line, err=True)
@@ -415,7 +415,7 @@ def _fit_into(recordings, method, each, out_file, plot_file, com_prior, transfer
     if each:
         recs = load_recordings(recordings)  # read as the fits go
         if method == "jax":
-            from jaxcomp.identify.jax_fit import fit_each
+            from jaxcomp.identify.batched_fit import fit_each
             from jaxcomp.plausibility import check_params
 
             first = next(recs)  # a batch is read while the one before is fitted

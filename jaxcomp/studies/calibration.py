@@ -7,12 +7,12 @@ noise, optional viscous friction); the calibration plan (default:
 plans, ``identify.random_plans``, each recorded by a contiguous group of the worlds) is
 recorded in every world at once on MJX (``MjxSimulator``, 1 kHz, float64, worlds sharded over
 the accelerators), every world is fitted with the joint JAX fit in vmapped batches on the
-accelerator (``jax_fit.fit_batch``) and M of them also with the paper's scipy fit
+accelerator (``batched_fit.fit_batch``) and M of them also with the paper's scipy fit
 (``identify.baseline``; the first worlds of each plan's group, M spread over the plans as the
 worlds are: ``baseline_worlds``). The report compares estimates with the truth.
 
 The stages, each in its own module and composed here (``run_study``): ``truth_draw``,
-``plan_signal``, ``plan_recording`` (simulate and reduce), ``jax_fit.fit_batch`` and
+``plan_signal``, ``plan_recording`` (simulate and reduce), ``batched_fit.fit_batch`` and
 ``baseline`` (fit), ``calibration_estimates`` and ``calibration_statistics`` (compare),
 ``calibration_figures`` and ``write_outputs`` (report).
 
@@ -59,9 +59,10 @@ from jaxcomp.errors import InputError
 from jaxcomp.files import writing
 from jaxcomp.hardware.mjx import MjxSimulator
 from jaxcomp.hardware.truth import model_current_noise
+from jaxcomp.identify.batched_fit import BatchFit, compile_fit_batch
+from jaxcomp.identify.batched_fit import fit_batch as batch_fit
 from jaxcomp.identify.evaluate import random_poses
-from jaxcomp.identify.jax_fit import BatchFit, FitModel, compile_fit_batch, fit_model
-from jaxcomp.identify.jax_fit import fit_batch as batch_fit
+from jaxcomp.identify.fit_model import FitModel, fit_model
 from jaxcomp.identify.named_plans import (
     check_plan_name,
     named_plan,
