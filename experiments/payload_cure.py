@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import synthetic  # noqa: E402  (the tests' synthetic recordings)
 
 from jaxcomp.hardware.truth import model_current_noise  # noqa: E402
-from jaxcomp.identify import joint_fit  # noqa: E402
+from jaxcomp.identify import fit  # noqa: E402
 from jaxcomp.identify.fit_solver import EXCITED  # noqa: E402
 from jaxcomp.identify.plan_design import default_plan  # noqa: E402
 from jaxcomp.plausibility import stated_scale  # noqa: E402
@@ -99,8 +99,8 @@ def main() -> None:
                 payload_com=(0.05, 0.0, 0.05),
                 transfers=moves,
             )
-            rows["alone"].append(_summary(joint_fit.fit(plain), truth))
-            rows["pair"].append(_summary(joint_fit.fit([plain, loaded]), truth))
+            rows["alone"].append(_summary(fit(plain), truth))
+            rows["pair"].append(_summary(fit([plain, loaded]), truth))
         joints = arm_joint_names(robot)
         for name, got in rows.items():
             err, std, ident, excited = (np.array(x) for x in zip(*got, strict=True))

@@ -7,6 +7,8 @@
 - ``recorder``: recording a plan on an ``Arm`` into a recording (``jaxcomp.recording``);
 - ``bins``: the steady samples of a sweep and their angle-bin means;
 - ``moments``: sweep moments, a recording reduced exactly for the joint fit;
+- ``fitting``: the entry point, ``fit`` and ``fit_each`` (re-exported here): recordings
+  fitted by either method, the params checked;
 - the joint JAX fit: ``fit_model`` (what it needs of the robot), ``fit_stats`` (the features of
   sweeps and transfers, reduced to sufficient statistics), ``fit_solver`` (priors and the
   solve), ``joint_fit`` (recordings fitted jointly into params), ``batched_fit`` (many
@@ -18,3 +20,7 @@
 Identification reads recordings and writes a params file (``jaxcomp.robot_params``), the only
 thing the controller takes from it.
 """
+
+from jaxcomp.identify.fitting import fit, fit_each
+
+__all__ = ["fit", "fit_each"]

@@ -5,7 +5,8 @@ payload): each recording's sweeps and transfers reduce to sufficient statistics
 (``prepare``, ``identify.fit_stats``), which add, and one solve (``identify.fit_solver``)
 gives one params set (``solution_params``, with the phase shift of each joint's gravity
 torque, ``phase_shift``). ``warnings_of`` names the ratios the fit could not identify on its
-own. ``identify.batched_fit`` fits many recordings each on its own.
+own. ``identify.batched_fit`` fits many recordings each on its own; ``identify.fitting`` is
+the entry point that checks the params.
 """
 
 from __future__ import annotations
