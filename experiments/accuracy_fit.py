@@ -18,8 +18,7 @@ import numpy as np
 
 import jaxcomp
 from jaxcomp.hardware import Simulator, TrueRobot
-from jaxcomp.identify import jax_fit
-from jaxcomp.identify.baseline import fit_baseline
+from jaxcomp.identify import fit
 from jaxcomp.identify.evaluate import gravity_current_error, random_poses
 from jaxcomp.identify.plan_design import default_plan
 from jaxcomp.identify.recorder import record
@@ -36,7 +35,7 @@ def main() -> None:
     truth = TrueRobot.draw(robot, seed=args.seed, viscous=np.full(6, args.viscous))
     with tempfile.TemporaryDirectory() as tmp, Simulator(robot, truth, seed=args.seed).arm as arm:
         rec = record(arm, default_plan(robot), Path(tmp) / "rec.npz", model="gen3_lite")
-    fits = {"jax": jax_fit.fit(rec), "scipy": fit_baseline(rec)}
+    fits = {method: fit(rec, method) for method in ("jax", "scipy")}
     poses = random_poses(robot, args.poses, seed=args.seed + 1)
     out = {"seed": args.seed, "viscous": args.viscous, "samples": rec.n_samples}
     for name, p in fits.items():

@@ -46,7 +46,7 @@ import numpy as np  # noqa: E402
 
 import jaxcomp  # noqa: E402
 from jaxcomp.hardware import Simulator, TrueRobot  # noqa: E402
-from jaxcomp.identify import jax_fit  # noqa: E402
+from jaxcomp.identify import batched_fit, joint_fit  # noqa: E402
 from jaxcomp.identify.baseline import fit_baseline  # noqa: E402
 from jaxcomp.identify.plan_design import default_plan  # noqa: E402
 from jaxcomp.identify.recorder import record  # noqa: E402
@@ -102,13 +102,13 @@ def main() -> None:
 
     with one_core():
         t = time.perf_counter()
-        jax_fit.fit(rec)
+        joint_fit.fit(rec)
         compile_single = time.perf_counter() - t
         single = []
         for k in range(5):
             r = noisy(clean, 10 + k)
             t = time.perf_counter()
-            jax_fit.fit(r)
+            joint_fit.fit(r)
             single.append(time.perf_counter() - t)
         base_times = []
         for k in range(ARGS.scipy_count):
@@ -121,11 +121,11 @@ def main() -> None:
     stage = one_core() if not ACCELERATED else nullcontext()
     with stage:
         t = time.perf_counter()
-        jax_fit.fit_each(pool[: ARGS.batch or 256], batch=ARGS.batch)
+        batched_fit.fit_each(pool[: ARGS.batch or 256], batch=ARGS.batch)
         compile_batch = time.perf_counter() - t
         t = time.perf_counter()
         fitted = len(
-            jax_fit.fit_each((pool[k % len(pool)] for k in range(ARGS.count)), batch=ARGS.batch)
+            batched_fit.fit_each((pool[k % len(pool)] for k in range(ARGS.count)), batch=ARGS.batch)
         )
         jax_total = time.perf_counter() - t
 

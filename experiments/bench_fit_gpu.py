@@ -12,7 +12,7 @@ offsets; generated on the device, not timed). Then, timed separately:
 - moments: each recording reduced to its sweep moments on the host
   (``identify.sweep_reduction.sweep_moments_batch``, vectorized over the recordings of a block,
   blocks spread over ``--workers`` threads: numpy releases the GIL);
-- fits: ``identify.jax_fit.fit_batch`` of all recordings from their moments on the device, in
+- fits: ``identify.batched_fit.fit_batch`` of all recordings from their moments on the device, in
   batches of ``--batch`` (default all), compile time apart; best of ``--repeats``.
 
 Prints recordings/minute of each stage and of both together, with the errors of the fits
@@ -40,8 +40,9 @@ from jaxcomp import load_robot
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.current import sweep_current
 from jaxcomp.hardware.mjx import batch_mesh
+from jaxcomp.identify.batched_fit import fit_batch
 from jaxcomp.identify.evaluate import gravity_torque_at
-from jaxcomp.identify.jax_fit import fit_batch, fit_model
+from jaxcomp.identify.fit_model import fit_model
 from jaxcomp.identify.moments import stack_worlds
 from jaxcomp.identify.named_plans import named_plan
 from jaxcomp.identify.sweep_reduction import sweep_moments_batch

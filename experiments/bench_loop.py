@@ -69,7 +69,7 @@ def calibrated(calibration: str | None) -> tuple[RobotParams, TrueRobot]:
     if calibration is not None:
         folder = Path(calibration)
         return RobotParams.load(folder / "params.json"), TrueRobot.load(folder / "truth.json")
-    from jaxcomp.identify.jax_fit import fit
+    from jaxcomp.identify import fit
     from jaxcomp.identify.plan_design import default_plan
     from jaxcomp.identify.recorder import record
 

@@ -26,8 +26,7 @@ import numpy as np
 
 from jaxcomp.hardware import Simulator, TrueRobot
 from jaxcomp.hardware.interface import HardwareFault
-from jaxcomp.identify import jax_fit
-from jaxcomp.identify.baseline import fit_baseline
+from jaxcomp.identify import fit as fit_recordings
 from jaxcomp.identify.evaluate import gravity_current_error_batch, random_poses
 from jaxcomp.identify.plan import CalibrationPlan, Sweep
 from jaxcomp.identify.recorder import record
@@ -129,11 +128,11 @@ def main() -> None:
                 print(f"{arm:<10}{seed:>5}  fault: {rec}")
                 continue
             t0 = time.perf_counter()
-            fit = jax_fit.fit(rec)
+            fit = fit_recordings(rec, "jax")
             seconds = time.perf_counter() - t0
             fits = {"jax": fit}
             if not args.no_scipy:
-                fits["scipy"] = fit_baseline(rec)
+                fits["scipy"] = fit_recordings(rec, "scipy")
             poses = random_poses(robot, 2000, seed)
             err = {
                 name: gravity_current_error_batch(

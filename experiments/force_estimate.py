@@ -55,7 +55,7 @@ DIRECTIONS = {
 
 def identified_params():
     """The joint fit of a simulated calibration (default plan) of the true robot."""
-    from jaxcomp.cli.calibrate import _fit
+    from jaxcomp.identify import fit
     from jaxcomp.identify.named_plans import named_plan
     from jaxcomp.identify.recorder import record
 
@@ -63,7 +63,7 @@ def identified_params():
     with tempfile.TemporaryDirectory() as tmp, sim.arm as arm:
         plan = named_plan(GEN3_LITE, "default")
         rec = record(arm, plan, f"{tmp}/r.npz", model=GEN3_LITE, progress=False)
-    return _fit([rec], "jax")
+    return fit([rec], "jax")
 
 
 def push_run(controller, scenario: str, force: np.ndarray) -> dict:

@@ -36,7 +36,7 @@ if str(HERE) not in sys.path:
 from jaxcomp.control import ImpedanceGains  # noqa: E402
 from jaxcomp.control.loop import arm_params  # noqa: E402
 from jaxcomp.hardware import Simulator, TrueRobot  # noqa: E402
-from jaxcomp.identify import jax_fit  # noqa: E402
+from jaxcomp.identify import fit  # noqa: E402
 from jaxcomp.identify.plan import CalibrationPlan  # noqa: E402
 from jaxcomp.identify.plan_design import default_plan  # noqa: E402
 from jaxcomp.identify.recorder import record  # noqa: E402
@@ -125,7 +125,7 @@ def calibrated(args: argparse.Namespace, out: Path) -> tuple[RobotParams, TrueRo
         plan = calibration_plan(short=args.quick)
         start = time.perf_counter()
         print(f"calibrating the simulated arm: {len(plan.sweeps)} sweeps, {plan.duration():.0f} s")
-        params = jax_fit.fit(record_calibration(truth, plan))
+        params = fit(record_calibration(truth, plan))
         print(f"  recorded and fitted in {time.perf_counter() - start:.0f} s")
     params = arm_params(params, ARM)
     params.save(out / "params.json")

@@ -35,9 +35,9 @@ from paper_common import (
 )
 
 from jaxcomp.hardware import TrueRobot
-from jaxcomp.identify import jax_fit
-from jaxcomp.identify.baseline import fit_baseline
+from jaxcomp.identify import fit
 from jaxcomp.identify.evaluate import gravity_current_error, random_poses
+from jaxcomp.identify.fitting import METHODS
 from jaxcomp.robot_params import RobotParams
 
 #: Current/torque ratios (A/(N m)) and friction losses (A) the paper identified on its real
@@ -51,7 +51,6 @@ PAPER_COM_BOX = 0.004
 PAPER_LINKS = {"ARM": "ua", "FOREARM": "fa", "LOWER_WRIST": "lw", "UPPER_WRIST": "uw"}
 #: Paper Section V-A: calibration rounds.
 PAPER_ROUNDS = 50
-METHODS = ("jax", "scipy")
 #: Checks: |mean / truth - 1| of the JAX fit's ratio and friction loss, every joint (the short
 #: plan's single hold per joint leaves ratio biases of up to about 1.5 %).
 RATIO_TOL = 0.02
@@ -79,7 +78,7 @@ def run_rounds(truth: TrueRobot, rounds: int, short: bool, seed: int) -> list[di
         start = time.perf_counter()
         rec = record_calibration(dataclasses.replace(truth, seed=noise_seed(seed, k)), plan)
         recorded = time.perf_counter()
-        fits: dict[str, RobotParams] = {"jax": jax_fit.fit(rec), "scipy": fit_baseline(rec)}
+        fits: dict[str, RobotParams] = {m: fit(rec, m) for m in METHODS}
         row = {"record_s": recorded - start, "samples": rec.n_samples}
         for name, p in fits.items():
             row[name] = p

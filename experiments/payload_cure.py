@@ -28,7 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import synthetic  # noqa: E402  (the tests' synthetic recordings)
 
 from jaxcomp.hardware.truth import model_current_noise  # noqa: E402
-from jaxcomp.identify import jax_fit  # noqa: E402
+from jaxcomp.identify import fit  # noqa: E402
+from jaxcomp.identify.fit_solver import EXCITED  # noqa: E402
 from jaxcomp.identify.plan_design import default_plan  # noqa: E402
 from jaxcomp.plausibility import stated_scale  # noqa: E402
 from jaxcomp.robot import load_robot  # noqa: E402
@@ -55,7 +56,7 @@ def truth_of(robot, seed: int) -> RobotParams:
 
 def _summary(p: RobotParams, truth: RobotParams) -> tuple[np.ndarray, ...]:
     d = p.diagnostics
-    excited = [e is not None and e < jax_fit.EXCITED for e in d["excitation"]]
+    excited = [e is not None and e < EXCITED for e in d["excitation"]]
     return (
         p.ratio / truth.ratio - 1,
         np.asarray(p.std["ratio"]) / truth.ratio,
@@ -98,8 +99,8 @@ def main() -> None:
                 payload_com=(0.05, 0.0, 0.05),
                 transfers=moves,
             )
-            rows["alone"].append(_summary(jax_fit.fit(plain), truth))
-            rows["pair"].append(_summary(jax_fit.fit([plain, loaded]), truth))
+            rows["alone"].append(_summary(fit(plain), truth))
+            rows["pair"].append(_summary(fit([plain, loaded]), truth))
         joints = arm_joint_names(robot)
         for name, got in rows.items():
             err, std, ident, excited = (np.array(x) for x in zip(*got, strict=True))

@@ -2,7 +2,7 @@
 
 Between sweeps the arm travels along straight joint-space lines (``CalibrationPlan.moves``).
 At a transfer's cruise every joint moves at its own nearly constant velocity; the current of
-joint k is the sweeps' model (``identify.jax_fit``) with the inertial, Coriolis and
+joint k is the sweeps' model (``identify.fit_stats``) with the inertial, Coriolis and
 centrifugal torques of the nominal model added:
 
     c_k = r_k (g_k(q) + [M(q) ddq + C(q, dq) dq]_k) + l_k sign(dq_k) + b_k dq_k

@@ -21,7 +21,7 @@ from synthetic import with_noise
 from jaxcomp.control import ImpedanceGains, make_impedance_controller
 from jaxcomp.control.loop import ArmMount, arm_model, run_control
 from jaxcomp.hardware import Simulator, TrueRobot
-from jaxcomp.identify import jax_fit
+from jaxcomp.identify import joint_fit
 from jaxcomp.robot import load_robot
 
 MOBILE = load_robot("mobile_gen3_lite")
@@ -39,7 +39,7 @@ pytestmark = pytest.mark.xdist_group("control-behaviour")
 def identified(sim_calibration):
     """(params the joint fit identifies, the calibrated truth)."""
     clean, truth = sim_calibration
-    return jax_fit.fit(with_noise(clean, 0.05, seed=0)), truth
+    return joint_fit.fit(with_noise(clean, 0.05, seed=0)), truth
 
 
 @pytest.fixture(scope="session")

@@ -23,7 +23,7 @@ import paper_exp2_rope as exp2  # noqa: E402
 import paper_exp3_guidance as exp3  # noqa: E402
 
 from jaxcomp.hardware import TrueRobot  # noqa: E402
-from jaxcomp.identify import jax_fit  # noqa: E402
+from jaxcomp.identify import joint_fit  # noqa: E402
 
 SEED = 3
 
@@ -34,7 +34,7 @@ def calibration(tmp_path_factory) -> list[str]:
     folder = tmp_path_factory.mktemp("calibration")
     truth = TrueRobot.draw(paper_common.ARM, SEED)
     rec = paper_common.record_calibration(truth, paper_common.calibration_plan(short=True))
-    jax_fit.fit(rec).save(folder / "params.json")
+    joint_fit.fit(rec).save(folder / "params.json")
     truth.save(folder / "truth.json")
     return ["--params", str(folder / "params.json"), "--truth", str(folder / "truth.json")]
 

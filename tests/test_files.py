@@ -172,7 +172,7 @@ def test_resume_records_only_the_missing_sweeps(cal, plan_file, monkeypatch, cap
     kept = load_recording(cal / "recording.npz")
     truth = replace(TrueRobot.load(cal / "truth.json", ROBOT).params, fit_seconds=0.0)
     monkeypatch.setattr(
-        "jaxcomp.cli.calibrate._fit", lambda recs, method, prior=None, transfers=True: truth
+        "jaxcomp.identify.fit", lambda recs, method, com_prior=None, transfers=True: truth
     )
     monkeypatch.setattr("jaxcomp.cli.calibrate._warn", lambda params: None)
     monkeypatch.setattr("jaxcomp.identify.plots.plot_sweeps", lambda *a: None)
@@ -272,7 +272,7 @@ def test_a_locked_folder_is_refused_by_every_command(cal, plan_file, monkeypatch
 def test_a_full_disk_ends_in_one_error_and_keeps_the_old_file(cal, monkeypatch, capsys):
     params = TrueRobot.draw(ROBOT, 0).params
     monkeypatch.setattr(
-        "jaxcomp.cli.calibrate._fit", lambda recs, method, prior=None, transfers=True: params
+        "jaxcomp.identify.fit", lambda recs, method, com_prior=None, transfers=True: params
     )
     old = cal / "p.json"
     old.write_text("{}")

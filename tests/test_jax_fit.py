@@ -13,8 +13,10 @@ from click.testing import CliRunner
 import jaxcomp
 from jaxcomp.cli import cli
 from jaxcomp.errors import InputError
-from jaxcomp.identify import jax_fit
+from jaxcomp.identify import batched_fit, joint_fit
 from jaxcomp.identify.baseline import fit_baseline
+from jaxcomp.identify.fit_model import fit_model
+from jaxcomp.identify.fit_solver import solve
 from jaxcomp.identify.plan_design import default_plan
 from jaxcomp.recording import Recording
 from jaxcomp.robot_params import RobotParams, arm_joint_indices
@@ -48,7 +50,7 @@ def sweeps(robot):
 @pytest.fixture(scope="module")
 def synthetic_fit(robot, truth, sweeps):
     rec = synthetic.recording(robot, truth, sweeps, noise=0.05, seed=1)
-    return rec, jax_fit.fit(rec)
+    return rec, joint_fit.fit(rec)
 
 
 def test_synthetic_fit_predicts_gravity_current(robot, truth, synthetic_fit):
@@ -70,7 +72,7 @@ def test_one_mounting_reports_its_ratios_as_confounded_and_names_the_cure(
     _, fitted = synthetic_fit
     d = fitted.diagnostics
     assert d["ratio_source"][0] == "mean of type M"
-    types = jax_fit.fit_model(robot).types
+    types = fit_model(robot).types
     mates = [k for k in range(1, 6) if types[k] == types[0]]
     assert mates and fitted.ratio[0] == pytest.approx(
         np.exp(np.log(fitted.ratio[mates]).mean()), rel=0.01
@@ -79,7 +81,7 @@ def test_one_mounting_reports_its_ratios_as_confounded_and_names_the_cure(
     assert len(confounded) >= 3 and not any(d["ratio_identified"][1:5])
     z = (fitted.ratio - truth.ratio) / fitted.std["ratio"]
     assert np.all(np.abs(z[1:5]) < 3), z
-    lines = jax_fit.warnings_of(fitted)
+    lines = joint_fit.warnings_of(fitted)
     assert len(lines) == len(confounded) and all("known payload" in line for line in lines)
 
 
@@ -103,7 +105,7 @@ def test_an_unexcited_joint_without_declared_types_is_not_locked(tmp_path):
     hold = np.array([0.0, 0.4, -0.8, 0.5])
     sweeps = [(j, hold, -1.5, 1.5, 0.5) for j in range(4)]
     rec = synthetic.recording(arm, truth, sweeps, noise=0.02, seed=3)
-    fitted = jax_fit.fit(rec)
+    fitted = joint_fit.fit(rec)
     d = fitted.diagnostics
     assert d["ratio_source"][0] == "prior: no gravity signal" and d["excitation"][0] is None
     excited = fitted.ratio[1:]
@@ -114,7 +116,7 @@ def test_an_unexcited_joint_without_declared_types_is_not_locked(tmp_path):
     assert np.all(np.abs(z[1:]) < 3), (z, d["ratio_source"])
     ident = np.asarray(d["ratio_identified"], bool)
     assert np.all(np.abs(fitted.ratio / truth.ratio - 1)[ident] < 0.01)
-    assert any("no gravity signal" in line for line in jax_fit.warnings_of(fitted))
+    assert any("no gravity signal" in line for line in joint_fit.warnings_of(fitted))
 
 
 def test_currents_in_milliamperes_give_the_same_fit_scaled(robot, truth, sweeps, monkeypatch):
@@ -128,10 +130,10 @@ def test_currents_in_milliamperes_give_the_same_fit_scaled(robot, truth, sweeps,
     with pytest.raises(
         InputError, match=r"exceeds 2 times the current limit: joint_0 7\d\d\.\d A .*in mA"
     ):
-        jax_fit.fit(in_ma)
-    amps = jax_fit.fit(synthetic.recording(robot, truth, sweeps, seed=11, transfers=move))
-    monkeypatch.setattr(jax_fit, "check_recordings", lambda recs: None)
-    milli = jax_fit.fit(in_ma)
+        joint_fit.fit(in_ma)
+    amps = joint_fit.fit(synthetic.recording(robot, truth, sweeps, seed=11, transfers=move))
+    monkeypatch.setattr(joint_fit, "check_recordings", lambda recs: None)
+    milli = joint_fit.fit(in_ma)
     np.testing.assert_allclose(milli.ratio, 1e3 * amps.ratio, rtol=1e-6)
     np.testing.assert_allclose(milli.friction, 1e3 * amps.friction, rtol=1e-6)
     np.testing.assert_allclose(milli.std["ratio"], 1e3 * amps.std["ratio"], rtol=1e-5)
@@ -149,7 +151,7 @@ def test_held_joints_that_give_way_under_load_do_not_bias_the_fit(robot, truth, 
     rows = rec.joint == 1
     give = [np.ptp(rec.q[rows, k]) for k in range(6) if k != 1]
     assert max(give) > np.deg2rad(0.3), give  # the held joints do give way
-    fitted = jax_fit.fit(rec)
+    fitted = joint_fit.fit(rec)
     poses = synthetic.random_poses(robot, 2000)
     err = synthetic.relative_gravity_error(robot, truth, fitted, poses)
     assert np.all(err[1:5] < 2e-3), err
@@ -166,8 +168,8 @@ def test_a_current_that_lags_the_pose_is_paired_with_the_pose_it_flowed_at(robot
     fast = [(j, hold, lo, hi, 3 * v) for j, hold, lo, hi, v in sweeps]  # 120 deg/s: short
     rec = synthetic.recording(robot, truth, fast, noise=0.005, seed=13, lag=3e-3)
     assert rec.current_lag == 3e-3
-    paired = jax_fit.fit(rec)
-    unpaired = jax_fit.fit(dataclasses.replace(rec, current_lag=0.0))
+    paired = joint_fit.fit(rec)
+    unpaired = joint_fit.fit(dataclasses.replace(rec, current_lag=0.0))
     z = lambda p: (p.friction - truth.friction) / p.std["friction"]  # noqa: E731
     assert np.abs(z(unpaired)).max() > 5, z(unpaired)
     assert np.abs(z(paired)).max() < 3.5, z(paired)
@@ -187,25 +189,25 @@ def test_standard_errors_and_identifiability_are_reported(synthetic_fit, tmp_pat
 
 def test_phase_shift_matches_the_truth_phase(robot, truth, synthetic_fit):
     rec, fitted = synthetic_fit
-    model = jax_fit.fit_model(robot)
-    st, coef, m = jax_fit.prepare(model, rec)
+    model = fit_model(robot)
+    st, coef, m = joint_fit.prepare(model, rec)
     com = np.concatenate([truth.com_offset[link] for link in model.links])
-    phase, _ = jax_fit.phase_shift(model, coef, m.joint, com, np.zeros((model.K, model.K)))
+    phase, _ = joint_fit.phase_shift(model, coef, m.joint, com, np.zeros((model.K, model.K)))
     assert np.all(np.abs(fitted.phase_shift - phase)[1:5] < 3 * fitted.std["phase_shift"][1:5])
     assert np.abs(phase[1:5]).max() > np.deg2rad(0.2)  # the truth has a phase shift to find
 
 
 def test_fit_models_are_kept_on_the_robot_and_equal_by_content(robot, tmp_path):
     """Equal models share compiled fits; an edited model of the same name does not."""
-    assert jax_fit.fit_model(robot) is jax_fit.fit_model(robot)
-    assert jax_fit.fit_model(robot) == jax_fit.fit_model("gen3_lite")
+    assert fit_model(robot) is fit_model(robot)
+    assert fit_model(robot) == fit_model("gen3_lite")
     text = robot.source.read_text()
     edited = tmp_path / "gen3_lite.xml"
     edited.write_text(text.replace('mass="', 'mass="1', 1))
     assert edited.read_text() != text
     other = jaxcomp.load_robot(edited)
     assert other.name == robot.name
-    assert jax_fit.fit_model(other) != jax_fit.fit_model(robot)
+    assert fit_model(other) != fit_model(robot)
 
 
 def test_two_mountings_and_a_payload_identify_every_ratio(robot, truth, sweeps):
@@ -219,7 +221,7 @@ def test_two_mountings_and_a_payload_identify_every_ratio(robot, truth, sweeps):
         payload_mass=1.0,
         payload_com=(0.05, 0.0, 0.04),
     )
-    fitted = jax_fit.fit([upright, tilted])
+    fitted = joint_fit.fit([upright, tilted])
     assert fitted.diagnostics["ratio_source"][1:] == ["fit"] * 5
     np.testing.assert_allclose(fitted.ratio[1:], truth.ratio[1:], rtol=0.002)
     # joint 0, now loaded, trades only with its own link's COM (the prior's +-4 mm)
@@ -234,8 +236,8 @@ def test_a_known_payload_cures_the_confounded_ratios(robot, truth, sweeps):
     loaded = synthetic.recording(
         robot, truth, sweeps, seed=22, payload_mass=0.5, payload_com=(0.0, 0.0, 0.05)
     )
-    alone = jax_fit.fit(plain)
-    both = jax_fit.fit([plain, loaded])
+    alone = joint_fit.fit(plain)
+    both = joint_fit.fit([plain, loaded])
     assert not any(alone.diagnostics["ratio_identified"][1:5])
     assert all(both.diagnostics["ratio_identified"][1:5]), both.diagnostics["ratio_source"]
     assert both.diagnostics["confounded"] == []
@@ -249,7 +251,7 @@ def test_a_known_payload_cures_the_confounded_ratios(robot, truth, sweeps):
 def test_two_speeds_separate_viscous_from_coulomb_friction(robot, truth, sweeps):
     """The default plan sweeps joints 1-4 once at half speed: viscous friction is told apart."""
     viscous = np.full(6, 0.02)  # N m s/rad
-    fitted = jax_fit.fit(synthetic.recording(robot, truth, sweeps, seed=4, viscous=viscous))
+    fitted = joint_fit.fit(synthetic.recording(robot, truth, sweeps, seed=4, viscous=viscous))
     np.testing.assert_allclose(fitted.friction[1:5], truth.friction[1:5], rtol=0.01)
     est = np.asarray(fitted.diagnostics["viscous"])[1:5]  # A s/rad = ratio x N m s/rad
     std = np.asarray(fitted.diagnostics["viscous_std"])[1:5]
@@ -258,7 +260,7 @@ def test_two_speeds_separate_viscous_from_coulomb_friction(robot, truth, sweeps)
     # at one speed it cannot be told apart: it is held at 0 and shows as friction
     plan = default_plan(robot)
     fast = synthetic.plan_sweeps(plan, lambda k, s: plan.sweeps[0].speed / s.speed)
-    one_speed = jax_fit.fit(synthetic.recording(robot, truth, fast, seed=4, viscous=viscous))
+    one_speed = joint_fit.fit(synthetic.recording(robot, truth, fast, seed=4, viscous=viscous))
     assert np.abs(one_speed.diagnostics["viscous"]).max() < 1e-9
     assert np.all(one_speed.friction > truth.friction)
 
@@ -272,9 +274,9 @@ def test_fit_each_equals_single_fits(robot, truth, sweeps):
         synthetic.recording(robot, truth, faster if s == 8 else sweeps, seed=s) for s in (7, 8, 9)
     ]
     assert recs[1].n_samples < recs[0].n_samples
-    batch = jax_fit.fit_each(recs, batch=2)
+    batch = batched_fit.fit_each(recs, batch=2)
     for rec, got in zip(recs, batch, strict=True):
-        want = jax_fit.fit(rec)
+        want = joint_fit.fit(rec)
         np.testing.assert_allclose(got.ratio, want.ratio, rtol=1e-6)
         np.testing.assert_allclose(got.friction, want.friction, rtol=1e-6, atol=1e-9)
         np.testing.assert_allclose(got.phase_shift, want.phase_shift, rtol=1e-5, atol=1e-9)
@@ -282,20 +284,20 @@ def test_fit_each_equals_single_fits(robot, truth, sweeps):
     fields = ("t", "q", "dq", "current", "joint", "direction")
     recs[1] = Recording(*(getattr(recs[1], f)[:cut] for f in fields), recs[1].model)
     with pytest.raises(InputError, match="recording 1: joint_4 is never swept"):
-        jax_fit.fit_each(recs, batch=2)
+        batched_fit.fit_each(recs, batch=2)
 
 
 def test_a_fit_that_does_not_converge_says_so(synthetic_fit):
     rec, _ = synthetic_fit
-    with pytest.raises(jax_fit.FitError, match="did not converge"):
-        jax_fit.fit(rec, max_iter=1)
+    with pytest.raises(joint_fit.FitError, match="did not converge"):
+        joint_fit.fit(rec, max_iter=1)
 
 
 def test_simulator_recording_accuracy_against_truth_and_baseline(robot, sim_calibration):
     """The issue's accuracy must-show on a recording the simulator made."""
     clean, truth = sim_calibration
     rec = synthetic.with_noise(clean, 0.05, seed=0)
-    fitted = jax_fit.fit(rec)
+    fitted = joint_fit.fit(rec)
     baseline = fit_baseline(rec)
     poses = synthetic.random_poses(robot, 3000, seed=2)
     err = synthetic.relative_gravity_error(robot, truth.params, fitted, poses)[1:5]
@@ -310,7 +312,9 @@ def test_spread_over_repetitions_matches_reported_standard_errors(sim_calibratio
     """Noise-only repetitions: the spread of the estimates is within 1.2x the reported std."""
     clean, _ = sim_calibration
     reps = 120
-    fits = jax_fit.fit_each(synthetic.with_noise(clean, 0.05, seed=100 + k) for k in range(reps))
+    fits = batched_fit.fit_each(
+        synthetic.with_noise(clean, 0.05, seed=100 + k) for k in range(reps)
+    )
     for field in ("ratio", "friction", "phase_shift"):
         values = np.array([getattr(f, field) for f in fits])
         reported = np.mean([f.std[field] for f in fits], axis=0)
@@ -382,8 +386,8 @@ def test_a_prefit_the_com_offsets_dominate_neither_slows_nor_drags_the_fit():
         robot, truth.params, synthetic.plan_sweeps(plan), noise=0.03, seed=1,
         transfers=plan.move_speed,
     )  # fmt: skip
-    model = jax_fit.fit_model(robot)
-    sol = jax_fit.solve(jax_fit._key(model), jax_fit.prepare(model, rec)[0])
+    model = fit_model(robot)
+    sol = solve(model.key, joint_fit.prepare(model, rec)[0])
     assert bool(sol.converged) and int(sol.iterations) <= 10, int(sol.iterations)
     std = np.sqrt(np.diag(np.asarray(sol.cov))[: model.n])
     z = (np.asarray(sol.ratio) - truth.ratio) / std

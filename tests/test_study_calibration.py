@@ -25,7 +25,7 @@ from jaxcomp.cli import cli
 from jaxcomp.errors import InputError
 from jaxcomp.hardware import PAPER_FRICTION, PAPER_RATIO
 from jaxcomp.hardware.mjx import Move, reference_trajectory
-from jaxcomp.identify import jax_fit, named_plans
+from jaxcomp.identify import batched_fit, joint_fit, named_plans
 from jaxcomp.identify.evaluate import (
     error_statistics,
     gravity_current,
@@ -33,6 +33,7 @@ from jaxcomp.identify.evaluate import (
     gravity_current_error_batch,
     random_poses,
 )
+from jaxcomp.identify.fit_model import fit_model
 from jaxcomp.identify.moments import world_moments
 from jaxcomp.identify.named_plans import named_plan, short_plan
 from jaxcomp.identify.plan import CalibrationPlan, Sweep
@@ -335,7 +336,7 @@ def test_jax_fit_finds_the_true_robots(study, robot):
     assert np.all(g < 0.1), g  # joint 4, the least loaded: 7.9 % in world 0 of this draw
     poses = random_poses(robot, 200, seed=SEED)  # the study's poses
     truth_com = np.zeros((2, 7, 3))
-    model = jax_fit.fit_model(robot)
+    model = fit_model(robot)
     truth_com[:, model.link_ids] = truth[:, 18 : 18 + model.K].reshape(2, -1, 3)
     nominal = gravity_current_error_batch(
         robot,
@@ -385,7 +386,7 @@ def test_streamed_moments_fit_as_the_recordings_moments(robot, tiny_plan):
     """The study's path (each sweep's moments and each transfer's bins summed on the device
     while the world runs, their steady samples chosen from the plan's commanded motion;
     vmapped fit) against the kept recording reduced on the host (``sweep_moments``,
-    ``transfer_bins``: steady samples from the measured speed) and ``jax_fit.fit``: nearly the
+    ``transfer_bins``: steady samples from the measured speed) and ``joint_fit.fit``: nearly the
     same samples, and fits that agree within their standard errors."""
     truth = draw_truth(robot, 1, SEED, TruthSpread())
     signal = plan_signal(named_plan(robot, tiny_plan), start_pose(robot))
@@ -415,9 +416,9 @@ def test_streamed_moments_fit_as_the_recordings_moments(robot, tiny_plan):
            for b in (host, device.__class__(*(a[0] for a in device)))]  # fmt: skip
     assert rms[0].max() > 1e-3, rms
     np.testing.assert_allclose(rms[1], rms[0], rtol=0.05, atol=1e-5)
-    model = jax_fit.fit_model(robot)
-    fit = jax_fit.fit_batch(model, res.moments, transfers=res.transfers, mesh=sim.mesh)
-    want = jax_fit.fit(rec, complete=False)  # the tiny plan sweeps joints 1-4
+    model = fit_model(robot)
+    fit = batched_fit.fit_batch(model, res.moments, transfers=res.transfers, mesh=sim.mesh)
+    want = joint_fit.fit(rec, complete=False)  # the tiny plan sweeps joints 1-4
     swept = np.isin(np.arange(6), rec.joint)
     assert swept.sum() == 4
     for got, std, ref in (
@@ -522,7 +523,7 @@ def test_random_plans_split_the_worlds_into_groups(robot, tmp_path, monkeypatch)
     assert report["jax"]["converged"] == 2 and report["faulted_worlds"] == 0
     # world w has the truth it has under any plan; it recorded its group's plan: the fit
     # determines the friction of the joints that plan sweeps or its transfers move, no other
-    model = jax_fit.fit_model(robot)
+    model = fit_model(robot)
     truth = jax_truth_vector(model, draw_truth(robot, 2, SEED, TruthSpread()))
     np.testing.assert_array_equal(arrays["truth"][:, : truth.shape[1]], truth)
     only_moved = 0
@@ -838,8 +839,8 @@ def test_sweeps_side_by_side_record_what_the_sweeps_in_turn_record(robot, uneven
         assert swept.max() < 5e-4 and np.abs(a.q - b.q).max() < 1e-2
     np.testing.assert_array_equal(side.moments.joint, turn.moments.joint)
     assert np.abs(side.moments.count - turn.moments.count).max() <= 1
-    model = jax_fit.fit_model(robot)
-    fits = [jax_fit.fit_batch(model, r.moments, transfers=r.transfers) for r in (side, turn)]
+    model = fit_model(robot)
+    fits = [batched_fit.fit_batch(model, r.moments, transfers=r.transfers) for r in (side, turn)]
     f_side, f_turn = (f.solution for f in fits)
     # held joints move a little differently (< 1e-2 rad), the fit takes each sample's held
     # pose, and a lane's transfer starts from a restart at rest: the ratios agree far inside

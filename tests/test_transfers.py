@@ -11,8 +11,11 @@ from odd_arms import serial_arm
 
 import jaxcomp
 from jaxcomp import dynamics
-from jaxcomp.identify import jax_fit
+from jaxcomp.identify import joint_fit
 from jaxcomp.identify.evaluate import gravity_current_error_batch, random_poses
+from jaxcomp.identify.fit_model import fit_model
+from jaxcomp.identify.fit_solver import joint_rss
+from jaxcomp.identify.fit_stats import Stats, transfer_stats
 from jaxcomp.identify.random_plans import MOVE_SPEED, random_plan
 from jaxcomp.identify.steady import STEADY_SETTLE, STEADY_TRIM
 from jaxcomp.identify.transfers import BIN_ANGLE, MIN_SPEED, bucket, padded_bins, transfer_bins
@@ -87,16 +90,16 @@ def test_the_transfer_model_holds_exactly_at_the_truth(arm, truths):
     scale = np.sqrt(np.mean(measured**2))
     assert np.abs(measured - model[counted]).max() < 1e-4 * scale  # the curvature in a bin
 
-    fit_model = jax_fit.fit_model(arm)
-    st = jax_fit.prepare(fit_model, rec)[0] + jax_fit.Stats(
-        *(-a for a in jax_fit.prepare(fit_model, rec, transfers=False)[0])
+    the_model = fit_model(arm)
+    st = joint_fit.prepare(the_model, rec)[0] + Stats(
+        *(-a for a in joint_fit.prepare(the_model, rec, transfers=False)[0])
     )  # the transfers' statistics alone
-    com = _coms(arm, truth.params)[[arm.link_index(link) for link in fit_model.links]].ravel()
-    n, K = fit_model.n, fit_model.K
+    com = _coms(arm, truth.params)[[arm.link_index(link) for link in the_model.links]].ravel()
+    n, K = the_model.n, the_model.K
 
     def rss(delta):
         theta = np.r_[truth.ratio, truth.friction, np.zeros(n), delta]
-        return np.asarray(jax_fit._rss(jax.numpy.asarray(theta), st, n, K))
+        return np.asarray(joint_rss(jax.numpy.asarray(theta), st, n, K))
 
     # what no parameter explains: the current's spread about its mean within each bin
     within = (tb.square - np.where(counted, tb.current**2 / np.maximum(tb.count, 1), 0)).sum(0)
@@ -118,7 +121,7 @@ def test_transfers_shrink_the_gravity_current_error(arm, truths):
         swept = np.isin(np.arange(rec.n_joints), rec.joint)[None]
         row = []
         for transfers in (False, True):
-            fit = jax_fit.fit(rec, com_prior=SPREAD.com_offset / math.sqrt(3), complete=False,
+            fit = joint_fit.fit(rec, com_prior=SPREAD.com_offset / math.sqrt(3), complete=False,
                               transfers=transfers)  # fmt: skip
             row.append(
                 gravity_current_error_batch(
@@ -146,8 +149,8 @@ def test_a_recording_without_transfers_fits_as_before(arm, truths):
     with transfers is the fit without them."""
     rec = _recording(arm, truths, 2, noise=0.05, transfers=0.0)
     assert transfer_bins(rec).size == 0
-    a = jax_fit.fit(rec, complete=False)
-    b = jax_fit.fit(rec, complete=False, transfers=False)
+    a = joint_fit.fit(rec, complete=False)
+    b = joint_fit.fit(rec, complete=False, transfers=False)
     np.testing.assert_array_equal(a.ratio, b.ratio)
     np.testing.assert_array_equal(a.friction, b.friction)
 
@@ -182,7 +185,7 @@ def test_a_ringing_servo_is_modelled_by_the_measured_acceleration(arm, truths):
     assert off[0].max() < 2e-3 * scale, (off[0].max(), scale)
     assert off[1].max() > 10 * off[0].max(), (off[1].max(), off[0].max())
 
-    model = jax_fit.fit_model(arm)
+    model = fit_model(arm)
     com = _coms(arm, truth.params)[[arm.link_index(link) for link in model.links]].ravel()
     n, K = model.n, model.K
     theta = jax.numpy.asarray(np.r_[truth.ratio, truth.friction, np.zeros(n), com])
@@ -190,8 +193,8 @@ def test_a_ringing_servo_is_modelled_by_the_measured_acceleration(arm, truths):
     for acc in (tb.acceleration, 0 * tb.acceleration):
         bins = tb._replace(acceleration=acc)
         bins = padded_bins(bins, bucket(bins.size))
-        st = jax_fit._transfer_stats_jit(model, bins, rec.gravity, 0.0, np.zeros(3))
+        st = transfer_stats(model, bins, rec.gravity, 0.0, np.zeros(3))
         within = (tb.square - np.where(counted, tb.current**2 / np.maximum(tb.count, 1), 0)).sum(0)
-        left.append(np.asarray(jax_fit._rss(theta, st, n, K)) - within)
+        left.append(np.asarray(joint_rss(theta, st, n, K)) - within)
     moving = tb.count.sum(0) > 0
     assert np.all(left[0][moving] * 10 < left[1][moving]), left

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import time
-from itertools import chain
 from pathlib import Path
 
 import click
 import numpy as np
 
+from jaxcomp import identify
 from jaxcomp.cli.console_options import console_options
 from jaxcomp.cli.group import cli
 from jaxcomp.cli.kortex_backend import open_kortex_arm
@@ -16,35 +16,12 @@ from jaxcomp.cli.model_options import joint_names, model_options
 from jaxcomp.cli.robot_options import backend_option, ip_option
 from jaxcomp.errors import InputError
 from jaxcomp.files import check_outputs
-
-_METHODS = ("jax", "scipy")
-
-
-def _fit(recordings, method: str, com_prior: float | None = None, transfers: bool = True):
-    """The params ``method`` fits to ``recordings``, refused (InputError) when implausible
-    (``plausibility.check_params``); ``transfers``: the JAX fit uses the moves between
-    sweeps too."""
-    from jaxcomp.plausibility import check_params
-
-    if method == "jax":
-        from jaxcomp.identify.jax_fit import fit
-
-        params = fit(recordings, com_prior=com_prior, transfers=transfers)
-    else:
-        from jaxcomp.identify.baseline import fit_baseline
-
-        if len(recordings) > 1:
-            raise InputError(
-                "--method scipy fits one recording (the paper's per-joint fit); use --method "
-                "jax to fit several recordings jointly, or --each"
-            )
-        params = fit_baseline(recordings[0])
-    return check_params(params, recordings[0].robot(), f"the {method} fit's params")
+from jaxcomp.identify.fitting import METHODS
 
 
 def _warn(params) -> None:
     """The fit's warnings (confounded or unexcited ratios, and the cure), one line each."""
-    from jaxcomp.identify.jax_fit import warnings_of
+    from jaxcomp.identify.joint_fit import warnings_of
 
     for line in warnings_of(params):
         click.echo(line, err=True)
@@ -240,8 +217,8 @@ def calibrate(
                 page.close()
         click.echo(f"recorded {rec.n_samples} samples -> {out / 'recording.npz'}")
         fits = {}
-        for method in _METHODS:
-            fits[method] = _fit([rec], method)
+        for method in METHODS:
+            fits[method] = identify.fit([rec], method)
             click.echo(f"{method} fit: {fits[method].fit_seconds:.3f} s")
         click.echo("(the first JAX fit on a machine includes its XLA compilation; it is cached)")
         _save(fits["jax"], out / "params.json")
@@ -346,7 +323,7 @@ def _prepare_folder(out: Path, plan, robot, settings: dict, resume: bool, overwr
 @click.argument("recordings", nargs=-1, required=True, type=click.Path(dir_okay=False))
 @click.option(
     "--method",
-    type=click.Choice(_METHODS),
+    type=click.Choice(METHODS),
     default="jax",
     show_default=True,
     help="jax: all joints and recordings jointly (gradient-based, with standard "
@@ -413,20 +390,13 @@ def _fit_into(recordings, method, each, out_file, plot_file, com_prior, transfer
 
     start = time.perf_counter()
     if each:
-        recs = load_recordings(recordings)  # read as the fits go
-        if method == "jax":
-            from jaxcomp.identify.jax_fit import fit_each
-            from jaxcomp.plausibility import check_params
-
-            first = next(recs)  # a batch is read while the one before is fitted
-            results = fit_each(
-                chain([first], recs), progress=True, com_prior=com_prior, transfers=transfers
-            )
-            robot = first.robot()
-            for k, p in enumerate(results):
-                check_params(p, robot, f"the jax fit's params of recording {k}")
-        else:
-            results = [_fit([r], "scipy") for r in recs]
+        results = identify.fit_each(  # read as the fits go
+            load_recordings(recordings),
+            method,
+            com_prior=com_prior,
+            transfers=transfers,
+            progress=True,
+        )
         with writing(out_file):
             write_json_atomic(out_file, [p.to_dict() for p in results])
         click.echo(
@@ -438,7 +408,7 @@ def _fit_into(recordings, method, each, out_file, plot_file, com_prior, transfer
             plot_batch(results, plot_file)
         return
     recs = [load_recording(p) for p in recordings]
-    params = _fit(recs, method, com_prior, transfers)
+    params = identify.fit(recs, method, com_prior=com_prior, transfers=transfers)
     _save(params, Path(out_file))
     robot = recs[0].robot()
     links = sorted(params.com_offset, key=robot.link_index)

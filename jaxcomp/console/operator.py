@@ -384,9 +384,9 @@ class Operator:
     def _fit(self, rec, out: Path) -> None:
         """The joint fit on a thread of its own (the arm holds meanwhile), then the
         controller with the new params (compiled here, swapped in when ready)."""
-        from jaxcomp.cli.calibrate import _fit as fit_checked
         from jaxcomp.control.impedance import make_impedance_controller
         from jaxcomp.control.loop import arm_params
+        from jaxcomp.identify import fit as fit_checked
 
         try:
             self.status(state="fitting", detail=f"{rec.n_samples} samples")

@@ -7,13 +7,13 @@ noise, optional viscous friction); the calibration plan (default:
 plans, ``identify.random_plans``, each recorded by a contiguous group of the worlds) is
 recorded in every world at once on MJX (``MjxSimulator``, 1 kHz, float64, worlds sharded over
 the accelerators), every world is fitted with the joint JAX fit in vmapped batches on the
-accelerator (``jax_fit.fit_batch``) and M of them also with the paper's scipy fit
+accelerator (``batched_fit.fit_batch``) and M of them also with the paper's scipy fit
 (``identify.baseline``; the first worlds of each plan's group, M spread over the plans as the
 worlds are: ``baseline_worlds``). The report compares estimates with the truth.
 
 The stages, each in its own module and composed here (``run_study``, ``chunk_results``):
 ``calibration_settings`` (what runs), ``truth_draw``, ``plan_signal``, ``plan_recording``
-(simulate and reduce), ``jax_fit.fit_batch`` and ``baseline`` (fit), ``calibration_estimates``
+(simulate and reduce), ``batched_fit.fit_batch`` and ``baseline`` (fit), ``calibration_estimates``
 and ``calibration_statistics`` (compare), ``calibration_report`` (report); the outputs written
 (``calibration_figures``, ``calibration_outputs``).
 
@@ -56,9 +56,10 @@ from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.mjx import BatchTruth, MjxSimulator
 from jaxcomp.hardware.truth import model_current_noise
+from jaxcomp.identify.batched_fit import BatchFit, compile_fit_batch
+from jaxcomp.identify.batched_fit import fit_batch as batch_fit
 from jaxcomp.identify.evaluate import random_poses
-from jaxcomp.identify.jax_fit import BatchFit, FitModel, compile_fit_batch, fit_model
-from jaxcomp.identify.jax_fit import fit_batch as batch_fit
+from jaxcomp.identify.fit_model import FitModel, fit_model
 from jaxcomp.identify.named_plans import named_plan, plan_count, random_count
 from jaxcomp.identify.plan import CalibrationPlan
 from jaxcomp.identify.random_plans import plan_seed

@@ -1,6 +1,6 @@
 """Both fits' estimates of the calibration study's worlds against their truth.
 
-The joint JAX fit (``identify.jax_fit.fit_batch``) of every world and the paper's scipy fit
+The joint JAX fit (``identify.batched_fit.fit_batch``) of every world and the paper's scipy fit
 (``identify.baseline``) of M of them: per parameter the estimate, the truth and the standard
 error the fit reported, and per joint the relative gravity-current error at random poses
 (``identify.evaluate.gravity_current_error_batch``). Units: ratio A/(N m), friction loss A,
@@ -13,8 +13,10 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxcomp.hardware.mjx import BatchTruth
+from jaxcomp.identify.batched_fit import BatchFit, identified
 from jaxcomp.identify.evaluate import gravity_current_error_batch
-from jaxcomp.identify.jax_fit import BatchFit, FitModel, identified, phase_shift
+from jaxcomp.identify.fit_model import FitModel
+from jaxcomp.identify.joint_fit import phase_shift
 from jaxcomp.recording import Recording
 from jaxcomp.robot import Robot
 from jaxcomp.robot_params import RobotParams
@@ -25,7 +27,7 @@ class Estimates(NamedTuple):
     """One method's estimates of W worlds against their truth (P parameters).
 
     names (P,), units (P,); estimate, truth, std (W, P) (std NaN where none was reported);
-    identified (W, P) bool: the data determine the parameter (``jax_fit.identified``); ok (W,)
+    identified (W, P) bool: the data determine the parameter (``batched_fit.identified``); ok (W,)
     bool: the fit converged / did not fail; gravity (W, n): relative RMS gravity-current error
     per joint at random poses (``evaluate.gravity_current_error_batch``); gravity_pooled (W,):
     the same pooled over the joints the world's plan sweeps (``pooled=True``: no fit learns the

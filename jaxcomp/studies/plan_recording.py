@@ -3,8 +3,8 @@ its moments and each transfer's cruise to its bins on the device while the world
 
 The simulator steps at 1 kHz and every ``every``-th state (default 10: 100 Hz) is added to its
 sweep's running sums inside the compiled loop (``MjxSimulator.run(reduce=)`` with
-``identify.moments.stream_add``; the steady samples are chosen from the plan's commanded speed,
-``identify.moments.stream_plan``; the transfers' likewise, ``identify.transfers``), so that only
+``identify.streaming.stream_add``; the steady samples are chosen from the plan's commanded speed,
+``identify.streaming.stream_plan``; the transfers' likewise, ``identify.transfers``), so that only
 each world's small sums come back to the host:
 host memory does not grow with the plan's length, and only the first ``keep`` worlds' samples
 leave the device (for the scipy fit). The current noise is the simulator's, drawn on the device

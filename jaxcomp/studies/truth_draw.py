@@ -13,7 +13,7 @@ import numpy as np
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.mjx import BatchTruth
 from jaxcomp.hardware.truth import friction_loss_torque, model_current_noise, truth_centre
-from jaxcomp.identify.jax_fit import fit_model
+from jaxcomp.identify.fit_model import fit_model
 from jaxcomp.robot import Robot
 from jaxcomp.robot_params import RobotParams
 
