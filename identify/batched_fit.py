@@ -53,7 +53,8 @@ from jaxcomp.robot_params import RobotParams
 def _fit_packed(model: FitModel, data: tuple[Packed, TransferBins], length: int, sequential: bool):
     """Stacked packed recordings and their transfer bins (leading batch axis) -> (Solution,
     coef, joint, count) of each: moments, statistics and fit in one computation on the device
-    (``sequential``: the moments one recording after another, see ``sweep_reduction.reduce_batch``)."""
+    (``sequential``: the moments one recording after another, see
+    ``sweep_reduction.reduce_batch``)."""
     p, tb = data
     m = reduce_batch(p, length, STEADY_FRACTION, STEADY_TRIM, sequential)
     sol, coef = _fit_moments.__wrapped__(model, m, tb)
@@ -345,8 +346,8 @@ def fit_batch(
 
     ``moments``: a ``SweepMoments`` with a leading axis W on every field (joint (W, S), hold
     (W, S, n), moments (W, S, 6, 6), count (W, S), gravity (W, 3), payload_mass (W,),
-    payload_com (W, 3)), e.g. ``identify.sweep_reduction.sweep_moments_batch``; a sweep of zero moments
-    adds nothing. ``transfers``: the recordings' stacked ``TransferBins`` (W, B, n) (None:
+    payload_com (W, 3)), e.g. ``identify.sweep_reduction.sweep_moments_batch``; a sweep of zero
+    moments adds nothing. ``transfers``: the recordings' stacked ``TransferBins`` (W, B, n) (None:
     sweeps alone). ``mesh``: a ``jax.sharding.Mesh`` with the single axis "batch" to shard each
     batch over (its devices); the batch is rounded up to a multiple of the mesh size and the
     last batch padded with copies of the last recording (dropped). The results are those of
