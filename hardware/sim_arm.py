@@ -70,6 +70,13 @@ def _fast_index(adr: np.ndarray) -> slice | np.ndarray:
     return adr
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """A view of ``a`` that cannot be written to."""
+    view = a.view()
+    view.flags.writeable = False
+    return view
+
+
 def simulation_spec(robot: Robot, joints: Sequence[int]) -> mujoco.MjSpec:
     """The simulators' model of ``robot`` (its reduced model, ``Robot.spec``) before compiling:
     a 1 ms implicitfast step, no contacts, the model's own actuators removed and one actuator
@@ -275,7 +282,20 @@ class Simulator:
         return float(self.data.time)
 
     @property
+    def arm_qposadr(self) -> np.ndarray:
+        """(n,) int, read-only: each arm joint's address in ``data.qpos`` (MuJoCo's
+        ``jnt_qposadr``); ``data.qpos[sim.arm_qposadr]`` are the arm's angles, rad."""
+        return _read_only(self._qadr)
+
+    @property
+    def arm_dofadr(self) -> np.ndarray:
+        """(n,) int, read-only: each arm joint's address in ``data.qvel`` (MuJoCo's
+        ``jnt_dofadr``); ``data.qvel[sim.arm_dofadr]`` are the arm's velocities, rad/s."""
+        return _read_only(self._dadr)
+
+    @property
     def modes(self) -> tuple[ControlMode, ...]:
+        """Each arm joint's control mode, (n,)."""
         return self._modes
 
     @property
@@ -633,7 +653,7 @@ class SimArm(Arm):
 
     def __init__(self, sim: Simulator, limits: ArmLimits | None = None):
         robot = sim.robot
-        poses = {k: v[sim._qadr] for k, v in robot.named_poses.items()}
+        poses = {k: v[sim.arm_qposadr] for k, v in robot.named_poses.items()}
         limits = limits or ArmLimits.from_robot(robot, sim.arm_joints)
         super().__init__(sim.arm_joint_names, limits, poses)
         self.sim = sim
