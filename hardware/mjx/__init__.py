@@ -47,8 +47,16 @@ from jaxcomp.hardware.mjx.gains import servo_gains
 from jaxcomp.hardware.mjx.mesh import batch_mesh
 from jaxcomp.hardware.mjx.model import LS_ITERATIONS, PAYLOAD_BODY, build_model
 from jaxcomp.hardware.mjx.reference import Move, reference_trajectory
-from jaxcomp.hardware.mjx.runner import AGREEMENT, PLAN, RESTART, SETTLE, MjxRecording, Reduction
-from jaxcomp.hardware.mjx.simulator import SETTLE_STEPS, MjxSimulator
+from jaxcomp.hardware.mjx.runner import (
+    AGREEMENT,
+    PLAN,
+    RESTART,
+    SETTLE,
+    SETTLE_STEPS,
+    MjxRecording,
+    Reduction,
+)
+from jaxcomp.hardware.mjx.simulator import MjxSimulator
 from jaxcomp.hardware.mjx.truth import BatchTruth, true_inertial_params
 
 __all__ = [

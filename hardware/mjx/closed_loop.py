@@ -27,7 +27,7 @@ import numpy as np
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.interaction import Push
-from jaxcomp.hardware.mjx.chunks import PyTree, chunk_length, over_worlds, scan_decimated
+from jaxcomp.hardware.mjx.chunks import PyTree, over_worlds, scan_decimated
 from jaxcomp.hardware.mjx.faults import (
     FAULT_EFFORT,
     FAULT_LIMIT,
@@ -35,8 +35,9 @@ from jaxcomp.hardware.mjx.faults import (
     FAULT_REFUSED,
     FAULT_STOPPED,
 )
-from jaxcomp.hardware.mjx.mesh import SHARED, WORLDS, devices, placement, world_padding
+from jaxcomp.hardware.mjx.mesh import SHARED, WORLDS, placement, world_padding
 from jaxcomp.hardware.mjx.model import WORLD_MODEL_FIELDS
+from jaxcomp.hardware.mjx.runner import SETTLE_STEPS
 from jaxcomp.hardware.mjx.step import implicitfast_step
 from jaxcomp.hardware.mjx.truth import BatchTruth
 
@@ -175,17 +176,61 @@ def run(
     state: PyTree | None,
     steps: int,
     *,
-    reference: np.ndarray | None,
-    pushes: PushSchedule | None,
-    initial_pose: str | Sequence[float] | np.ndarray | None,
-    settle_steps: int,
-    seed: int,
-    every: int,
-    progress: Callable[[int, int], None] | None,
+    reference: np.ndarray | None = None,
+    pushes: PushSchedule | None = None,
+    initial_pose: str | Sequence[float] | np.ndarray | None = None,
+    settle_steps: int = SETTLE_STEPS,
+    seed: int = 0,
+    every: int = 0,
+    progress: Callable[[int, int], None] | None = None,
     world_ids: Sequence[int] | np.ndarray | None = None,
 ) -> ClosedLoopResult:
-    """``MjxSimulator.run_closed_loop`` (see there): settle, then the closed loop, chunk by
-    chunk."""
+    """Drive every world in CURRENT mode with ``policy`` for ``steps`` steps of 1 ms
+    (``MjxSimulator.run_closed_loop``): settle, then the closed loop, chunk by chunk.
+
+    Each world settles at ``initial_pose`` under the position servo for ``settle_steps``
+    steps, as in ``MjxSimulator.run``; from t = 0 the policy maps each sample k
+    (``Observation`` at t = k CONTROL_PERIOD, k = 0 .. steps) to the motor currents (n,) A of
+    step k (the last sample's are not applied): torque = current / true ratio, clamped at the
+    effort limit, as the CPU Simulator's CURRENT mode (the sample before a step, the command
+    after it: ``control.loop.run_control`` in lock step, with ``steps`` cycles). The measured
+    current is ratio x applied torque + noise; world w's noise at sample k comes from
+    ``fold_in(fold_in(PRNGKey(seed), id_w), k)``, ``id_w`` = ``world_ids[w]``: with global ids
+    it does not depend on how the worlds are chunked.
+
+    A world goes to POSITION mode, holding its measured position, for the rest of the run
+    (``fault_step``, ``fault_code``) when, as on the CPU Simulator and the ``Arm``, a joint
+    reaches its limit, a torque exceeds the effort limit or a joint ``overspeed`` (the sample
+    after the step shows the fault), or at a sample whose command is refused (NaN/inf or
+    beyond ``current_limit`` A, never sent) or where the policy returns ``stop``; the policy
+    state stays as after the last sample whose command was sent (``run_control``: a tripped
+    sample is not counted).
+
+    Args:
+        sim: the simulator (``MjxSimulator``; this is its method ``run_closed_loop``).
+        truth: the worlds' true robots (W worlds).
+        policy: a ``Policy(init, step)`` of pure JAX functions of one world, vmapped over
+            worlds here.
+        params: the policy's parameters, a pytree of (W, ...) arrays.
+        state: the initial policy state, a pytree of (W, ...) arrays, or None when
+            ``policy.init`` makes it from sample 0.
+        steps: steps of the closed loop (>= 1).
+        reference: (steps + 1, m), shared by the worlds: row k goes to the policy with sample
+            k (None: an empty row).
+        pushes: forces on the end effectors (world frame).
+        initial_pose: a pose name, (n,) or (W, n) rad; None: ``Robot.idle_pose``.
+        settle_steps: steps of the settling before t = 0 (>= 1: sample 0 is the settled state).
+        seed: of the current noise.
+        every: records every ``every``-th step (0: only the final state).
+        progress: ``progress(steps_done, steps_total)`` after each chunk.
+        world_ids: (W,) ints >= 0, the worlds' ids of the noise (default 0 .. W - 1).
+
+    Returns:
+        The ``ClosedLoopResult``.
+
+    Raises:
+        InputError: an argument out of its range, shape or kind.
+    """
     steps, settle_steps, every = int(steps), int(settle_steps), int(every)
     if steps < 1:
         raise InputError(f"steps must be >= 1, got {steps}")
@@ -218,14 +263,14 @@ def run(
         pushes = PushSchedule(np.zeros((w, 1)), np.ones((w, 1)), np.zeros((w, 1, 3)))
     pushes = pushes.checked(w)
     params = _per_world(params, w, "params")
-    clock = sim._clock()
-    q0 = sim._initial_pose(initial_pose, w)
+    clock = sim.run_clock()
+    q0 = sim.initial_poses(initial_pose, w)
     fields = sim.world_fields(truth)
     fields.update(
         push_start=pushes.start.astype(dtype),
         push_duration=pushes.duration.astype(dtype),
         push_force=pushes.force.astype(dtype),
-        key=sim._world_keys(seed, _world_ids(world_ids, w)),
+        key=sim.world_keys(seed, _world_ids(world_ids, w)),
     )
     pad = world_padding(sim.mesh, w)
     wp = len(pad)
@@ -236,19 +281,11 @@ def run(
         pstate = padded(_per_world(state, w, "state"))
     else:  # zeros of init's structure until sample 0 replaces them
         obs = Observation(np.zeros(wp), zeros, zeros, zeros, np.zeros((wp, ref.shape[1])))
-        with sim._precision():
+        with sim.precision():
             shapes = jax.eval_shape(jax.vmap(policy.init), params, obs)
         pstate = jax.tree_util.tree_map(lambda sd: np.zeros(sd.shape, sd.dtype), shapes)
     if every:
-        chunk = chunk_length(
-            sim.chunk_steps,
-            sim.backend,
-            wp // devices(sim.mesh),
-            n,
-            dtype.itemsize,
-            every,
-            max(steps, settle_steps),
-        )
+        chunk = sim.chunk_length(wp, every, max(steps, settle_steps))
     else:
         chunk = sim.chunk_steps or (100 if sim.backend == "cpu" else 1000)
         chunk = min(int(chunk), max(steps, settle_steps))
@@ -270,7 +307,7 @@ def run(
         sim.mesh,
         _signature(fields, params, carry, ref[0]),
     )
-    fn = sim._compiled_function(
+    fn = sim.compiled_function(
         key, lambda: _build(sim, policy, every, sim.overspeed, np.array(current_limit))
     )
     clock.mark()
@@ -332,12 +369,12 @@ def _build(
     Carry per world: qpos, qvel, qacc_warmstart, lever of the push (site - body COM, m, from
     the previous step's kinematics, as the CPU Simulator uses it), command, policy state, held
     position, fault step, fault code."""
-    mx, d0, dtype, n = sim._mx, sim._d0, sim.dtype, sim.n
-    lo = jnp.asarray(sim._hard[:, 0], dtype)
-    hi = jnp.asarray(sim._hard[:, 1], dtype)
-    torque_limit = jnp.asarray(sim._torque_limit, dtype)
+    mx, d0, dtype, n = sim.mjx_model, sim.mjx_data, sim.dtype, sim.n
+    lo = jnp.asarray(sim.joint_limits[:, 0], dtype)
+    hi = jnp.asarray(sim.joint_limits[:, 1], dtype)
+    torque_limit = jnp.asarray(sim.torque_limit, dtype)
     current_limit = jnp.asarray(current_limit, dtype)
-    site, body, nbody = sim._ee_site, sim._ee_body, sim.model.nbody
+    site, body, nbody = sim.ee_site, sim.ee_body, sim.model.nbody
     step_fn = implicitfast_step(sim.model, dtype)
     init, act = policy
 
@@ -413,7 +450,7 @@ def _build(
 
     # fields, params, carry, the samples and the fault counts (one per device): per world
     specs = (WORLDS, WORLDS, WORLDS, SHARED, SHARED, SHARED)
-    return sim._ahead_of_time(chunk_fn, 2, specs, WORLDS)
+    return sim.ahead_of_time(chunk_fn, 2, specs, WORLDS)
 
 
 def _per_world(tree: PyTree, worlds: int, name: str) -> PyTree:

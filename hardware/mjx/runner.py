@@ -26,7 +26,7 @@ from jax.sharding import PartitionSpec as P
 
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
-from jaxcomp.hardware.mjx.chunks import chunk_length, over_worlds, scan_decimated
+from jaxcomp.hardware.mjx.chunks import over_worlds, scan_decimated
 from jaxcomp.hardware.mjx.mesh import SHARED, WORLDS, device_rows, devices, placement, world_padding
 from jaxcomp.hardware.mjx.model import WORLD_MODEL_FIELDS
 from jaxcomp.hardware.mjx.step import implicitfast_step
@@ -43,6 +43,9 @@ AGREEMENT = {"q": 2e-8, "dq": 1e-6, "current": 5e-6}
 #: The recorded worlds of a run's compiled program come in multiples of this (at least one
 #: multiple, also when none is recorded).
 RECORD_BUCKET = 4
+
+#: Steps of the settling at the initial pose before t = 0 (the CPU Simulator's).
+SETTLE_STEPS = 500
 
 #: ``run``'s phase of a step, per reference group: the plan (faults count), settling (the
 #: reference held, faults not counted), and a restart: the world set at rest at the
@@ -100,29 +103,69 @@ def run(
     sim: MjxSimulator,
     truth: BatchTruth,
     q_ref: np.ndarray,
-    initial_pose: str | Sequence[float] | np.ndarray | None,
+    initial_pose: str | Sequence[float] | np.ndarray | None = None,
     *,
-    settle_steps: int,
-    seed: int,
-    every: int,
-    progress: Callable[[int, int], None] | None,
-    on_chunk: Callable[[int, MjxRecording], None] | None,
-    keep: bool,
-    group: Sequence[int] | np.ndarray | None,
+    settle_steps: int = SETTLE_STEPS,
+    seed: int = 0,
+    every: int = 1,
+    progress: Callable[[int, int], None] | None = None,
+    on_chunk: Callable[[int, MjxRecording], None] | None = None,
+    keep: bool = True,
+    group: Sequence[int] | np.ndarray | None = None,
     reduce: Reduction | None = None,
     record: Sequence[int] | np.ndarray | None = None,
     world_ids: Sequence[int] | np.ndarray | None = None,
     phase: np.ndarray | None = None,
     noise_step: np.ndarray | None = None,
 ) -> MjxRecording:
-    """``MjxSimulator.run`` (see there): settle, then the plan, chunk by chunk."""
+    """Drive every world through the position targets ``q_ref`` at 1 kHz
+    (``MjxSimulator.run``): settle, then the plan, chunk by chunk.
+
+    Each world starts at ``initial_pose``, is servoed there for ``settle_steps`` steps (as a
+    fresh CPU ``Simulator``), then follows ``q_ref``: step i commands q_ref[i] and records the
+    state after it. The current noise of world w at step i is ``noise_w N(0, 1)`` from
+    ``fold_in(fold_in(PRNGKey(seed), id_w), c)``, ``id_w`` = ``world_ids[w]`` and c =
+    ``noise_step[i, group[w]]``, so it depends neither on chunking nor, with global ids, on how
+    worlds are batched (nor, with the steps of one plan as ``noise_step``, on where a job runs).
+
+    Args:
+        sim: the simulator (``MjxSimulator``; this is its method ``run``).
+        truth: the worlds' true robots (W worlds).
+        q_ref: (T, n) rad, the joint-position targets of every step; or (T, G, n): G
+            references side by side, world w following reference ``group[w]`` (e.g. the
+            sweeps of one plan as parallel segments). Within the joint limits.
+        initial_pose: a pose name, (n,) or (W, n) rad; None: ``Robot.idle_pose``.
+        settle_steps: steps of the settling before t = 0 (>= 0).
+        seed: of the current noise.
+        every: records every ``every``-th sample (0, every, ...), >= 1.
+        progress: ``progress(steps_done, steps_total)`` after each chunk.
+        on_chunk: ``on_chunk(first_sample, recording_of_the_chunk)`` streams the samples.
+        keep: False returns q, dq, current as None (bounded host memory; without
+            ``on_chunk`` no sample leaves the device).
+        group: (W,) ints in [0, G), each world's reference (default 0).
+        reduce: a ``Reduction`` of every world's samples on the device, its final carry
+            returned as ``reduced``.
+        record: only these worlds' samples leave the device (default all; q, dq, current then
+            have M = len(record) rows).
+        world_ids: (W,) ints >= 0, the worlds' ids of the noise (default 0 .. W - 1).
+        phase: (T, G) of ``PLAN`` (default), ``SETTLE`` (faults not counted) or ``RESTART``
+            (the world set at rest at its reference, then settling): several jobs one after
+            another in one world.
+        noise_step: (T, G) ints, each step's noise index (default the step i).
+
+    Returns:
+        The ``MjxRecording``.
+
+    Raises:
+        InputError: an argument out of its range or shape, or a target beyond a joint limit.
+    """
     every = int(every)
     if every < 1:
         raise InputError(f"every must be >= 1, got {every}")
     settle_steps = int(settle_steps)
     if settle_steps < 0:
         raise InputError("settle_steps must be >= 0")
-    hard = sim._hard
+    hard = sim.joint_limits
     q_ref = np.asarray(q_ref, dtype=float)
     if q_ref.ndim == 2:
         q_ref = q_ref[:, None]
@@ -149,9 +192,9 @@ def run(
     if noise_step.shape != (t_total, groups) or not np.issubdtype(noise_step.dtype, np.integer):
         raise InputError(f"noise_step must be ({t_total}, {groups}) step indices")
     noise_step = noise_step[::every].astype(np.int32)  # the recorded samples' (n_rec, G)
-    clock = sim._clock()
+    clock = sim.run_clock()
     dtype = sim.dtype
-    q0 = sim._initial_pose(initial_pose, w)
+    q0 = sim.initial_poses(initial_pose, w)
     fields = sim.world_fields(truth)
     pad = world_padding(sim.mesh, w)
     wp = len(pad)
@@ -164,18 +207,10 @@ def run(
         raise InputError(f"record must hold world indices in [0, {w})")
     if not keep and on_chunk is None:  # nobody reads the samples: none leave the device
         rows = rows[:0]
-    fields["key"] = sim._world_keys(seed, ids)[pad]
+    fields["key"] = sim.world_keys(seed, ids)[pad]
     fields["group"] = group.astype(np.int32)[pad]
     q0 = q0[pad]
-    chunk = chunk_length(
-        sim.chunk_steps,
-        sim.backend,
-        wp // devices(sim.mesh),
-        n,
-        dtype.itemsize,
-        every,
-        max(t_total, settle_steps, 1),
-    )
+    chunk = sim.chunk_length(wp, every, max(t_total, settle_steps, 1))
     limits = (sim.following_error, sim.overspeed)
     n_rec = -(-t_total // every)
     xs = _reduction_rows(reduce, n_rec, groups)
@@ -191,7 +226,7 @@ def run(
     local_rows, where = device_rows(rows, wp, devices(sim.mesh), RECORD_BUCKET)
     key = ("open", wp, chunk, every, groups, limits, sim.mesh, red_key, local_rows.size)
     step = None if reduce is None else reduce.step
-    fn = sim._compiled_function(key, lambda: _build(sim, chunk, every, *limits, step))
+    fn = sim.compiled_function(key, lambda: _build(sim, chunk, every, *limits, step))
     put, put_shared = placement(sim.mesh)
     fields = put(fields)
     rows_dev = put(local_rows.astype(np.int32))
@@ -318,9 +353,9 @@ def _build(
     qacc_warmstart, fault step (first step with a joint at its limit, beyond
     ``following_error`` rad of its target or faster than ``overspeed`` rad/s), the reduction's
     carry (``Reduction``; () without one)."""
-    mx, d0, dtype, n = sim._mx, sim._d0, sim.dtype, sim.n
-    lo = jnp.asarray(sim._hard[:, 0], dtype)
-    hi = jnp.asarray(sim._hard[:, 1], dtype)
+    mx, d0, dtype, n = sim.mjx_model, sim.mjx_data, sim.dtype, sim.n
+    lo = jnp.asarray(sim.joint_limits[:, 0], dtype)
+    hi = jnp.asarray(sim.joint_limits[:, 1], dtype)
     groups = chunk // every
     step_fn = implicitfast_step(sim.model, dtype)
 
@@ -388,4 +423,4 @@ def _build(
 
     # fields, carry and the recorded worlds (each device's own, ``device_rows``): per world
     specs = (WORLDS, WORLDS, SHARED, SHARED, SHARED, SHARED, WORLDS, SHARED, SHARED)
-    return sim._ahead_of_time(chunk_fn, 1, specs, WORLDS)
+    return sim.ahead_of_time(chunk_fn, 1, specs, WORLDS)
