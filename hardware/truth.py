@@ -46,7 +46,9 @@ from jaxcomp.robot_params import (
 )
 
 #: Ratios (A/(N m)) and friction losses (A) identified on the paper's real arm, joints 0..5
-#: (the Gen3 Lite models state them as ``jaxcomp_sim_ratio`` and ``jaxcomp_sim_friction``).
+#: (the values of Figs. 11-12's calibration, the authors' published code; the Gen3 Lite models
+#: state them as ``jaxcomp_sim_ratio`` and ``jaxcomp_sim_friction``, the simulator's default
+#: truth). The one place of these figures in the code.
 PAPER_RATIO = (1.0282, 0.3074, 1.0282, 1.9074, 2.0373, 1.9724)
 PAPER_FRICTION = (0.5318, 1.4776, 0.6695, 0.3013, 0.3732, 0.5923)
 #: A, standard deviation of the measured current of a joint whose current limit is 11 A.
