@@ -172,7 +172,16 @@ class KortexArm(Arm):
 
     @classmethod
     def emulated(cls, emulator=None, **kwargs) -> KortexArm:
-        """An adapter on a ``KortexEmulator`` (lock step: the emulator's clock, no sleeping)."""
+        """An adapter on a ``KortexEmulator`` (lock step: the emulator's clock, no sleeping).
+
+        Args:
+            emulator: the emulator (default: a fresh ``KortexEmulator()``).
+            **kwargs: the adapter's other arguments (``clock`` and ``sleep`` default to the
+                emulator's).
+
+        Returns:
+            The open ``KortexArm``; its ``emulator`` attribute is the emulator.
+        """
         if emulator is None:
             from jaxcomp.hardware.kortex_emulator import KortexEmulator
 

@@ -223,20 +223,36 @@ class KortexEmulator:
 
     # ----------------------------------------------------------------- injections
     def inject_stall(self, at: float, seconds: float) -> None:
-        """At time ``at`` s the caller stalls for ``seconds`` s (missed cycles)."""
+        """The caller stalls (missed cycles).
+
+        Args:
+            at: s, when. seconds: s, how long.
+        """
         self._injections.add(Injection(at, "stall", seconds=seconds))
 
     def inject_stale(self, at: float, seconds: float) -> None:
-        """From ``at`` s, for ``seconds`` s, feedback frames stop coming (old feedback)."""
+        """Feedback frames stop coming for a while (the old feedback repeats).
+
+        Args:
+            at: s, from when. seconds: s, how long.
+        """
         self._injections.add(Injection(at, "stale", seconds=seconds))
 
     def inject_fault(self, at: float, device: int, bits: int = INJECTED) -> None:
-        """At ``at`` s actuator ``device`` raises fault bits ``bits`` in fault_bank_a."""
+        """An actuator raises fault bits in its fault_bank_a.
+
+        Args:
+            at: s, when. device: the actuator's device id. bits: the fault bits.
+        """
         self._injections.add(Injection(at, "fault", device=device, bits=bits))
 
     def inject_arm_fault(self, at: float, bits: int = EMERGENCY_STOP_ACTIVATED) -> None:
-        """At ``at`` s the arm raises the arm-level fault bits ``bits`` (Base.SafetyIdentifier)
-        in ``base.fault_bank_a``: ARMSTATE_IN_FAULT, every actuator holds."""
+        """The arm raises arm-level fault bits in ``base.fault_bank_a``: ARMSTATE_IN_FAULT,
+        every actuator holds.
+
+        Args:
+            at: s, when. bits: the fault bits (Base.SafetyIdentifier).
+        """
         self._injections.add(Injection(at, "arm_fault", bits=bits))
 
     def inject_lost(self, at: float, count: int = 1, what: str = "reply") -> None:
@@ -244,6 +260,9 @@ class KortexEmulator:
         (the command is applied, its reply lost), "command" (the command never arrives) or
         "client" (``KClientException`` at once, nothing sent). A lost reply or command costs
         the caller its ``timeout_ms`` and raises ``TimeoutError``.
+
+        Args:
+            at: s, from when. count: how many calls. what: one of ``LOST_KINDS``.
 
         Raises:
             ValueError: ``what`` is not one of ``LOST_KINDS``.
@@ -254,7 +273,11 @@ class KortexEmulator:
 
     def inject_config_timeout(self, at: float, count: int = 1) -> None:
         """The next ``count`` configuration calls at or after ``at`` s get no reply (not
-        applied): the caller waits its ``timeout_ms`` and gets ``TimeoutError``."""
+        applied): the caller waits its ``timeout_ms`` and gets ``TimeoutError``.
+
+        Args:
+            at: s, from when. count: how many calls.
+        """
         self._injections.add(Injection(at, "config_timeout", count=int(count)))
 
     # ----------------------------------------------------------------- channels and sessions

@@ -94,8 +94,11 @@ class RouterClient:
         self.active = True
 
     def SetActivationStatus(self, active: bool) -> None:  # noqa: N802
-        """Args:
-        active: whether the router is active."""
+        """Activate or deactivate the router.
+
+        Args:
+            active: whether the router is active.
+        """
         self.active = active
 
 
@@ -110,8 +113,11 @@ class RouterClientSendOptions:
         self.timeout_ms = 10000
 
     def getTimeoutInSecond(self) -> float:  # noqa: N802
-        """Returns:
-        The timeout, s."""
+        """The reply timeout.
+
+        Returns:
+            ``timeout_ms`` in s.
+        """
         return self.timeout_ms / 1000
 
 
@@ -173,23 +179,43 @@ class BaseClient(_Client):
     service = "Base"
 
     def SetServoingMode(self, info, deviceId=0, options=None) -> None:  # noqa: N802, N803
-        """Args:
-        info: a ``ServoingModeInformation``. options: ``RouterClientSendOptions``."""
+        """Switch the base's servoing mode (``KortexEmulator.set_servoing_mode``).
+
+        Args:
+            info: a ``ServoingModeInformation``. deviceId: as kortex_api.
+            options: ``RouterClientSendOptions``.
+        """
         self._configuration("SetServoingMode", options).set_servoing_mode(info)
 
     def GetServoingMode(self, deviceId=0, options=None):  # noqa: N802, N803
-        """Returns:
-        The base's ``ServoingModeInformation``."""
+        """The base's servoing mode.
+
+        Args:
+            deviceId, options: as kortex_api (``RouterClientSendOptions``).
+
+        Returns:
+            The base's ``ServoingModeInformation``.
+        """
         emu = self._configuration("GetServoingMode", options)
         return ServoingModeInformation(servoing_mode=emu.servoing_mode)
 
     def ClearFaults(self, deviceId=0, options=None) -> None:  # noqa: N802, N803
-        """Clear every actuator and arm fault (``KortexEmulator.clear_faults``)."""
+        """Clear every actuator and arm fault (``KortexEmulator.clear_faults``).
+
+        Args:
+            deviceId, options: as kortex_api (``RouterClientSendOptions``).
+        """
         self._configuration("ClearFaults", options).clear_faults()
 
     def GetArmState(self, deviceId=0, options=None):  # noqa: N802, N803
-        """Returns:
-        The arm's ``ArmStateInformation``."""
+        """The arm's state (``KortexEmulator.arm_state``).
+
+        Args:
+            deviceId, options: as kortex_api (``RouterClientSendOptions``).
+
+        Returns:
+            The arm's ``ArmStateInformation``.
+        """
         emu = self._configuration("GetArmState", options)
         return ArmStateInformation(active_state=emu.arm_state)
 
@@ -215,8 +241,14 @@ class BaseCyclicClient(_Client):
         return self._cyclic("Refresh").refresh(command, options)
 
     def RefreshFeedback(self, deviceId=0, options=None):  # noqa: N802, N803
-        """Returns:
-        The current ``Feedback`` (no command)."""
+        """The feedback without a command (``KortexEmulator.refresh_feedback``).
+
+        Args:
+            deviceId, options: as kortex_api (the emulator answers at once).
+
+        Returns:
+            The current ``Feedback`` (no command).
+        """
         return self._cyclic("RefreshFeedback").refresh_feedback()
 
 
@@ -230,14 +262,23 @@ class ActuatorConfigClient(_Client):
     service = "ActuatorConfig"
 
     def SetControlMode(self, info, deviceId=0, options=None) -> None:  # noqa: N802, N803
-        """Args:
-        info: a ``ControlModeInformation``. deviceId: the actuator's device id.
-        options: ``RouterClientSendOptions``."""
+        """Switch one actuator's control mode (``KortexEmulator.set_control_mode``).
+
+        Args:
+            info: a ``ControlModeInformation``. deviceId: the actuator's device id.
+            options: ``RouterClientSendOptions``.
+        """
         self._configuration("SetControlMode", options).set_control_mode(info, deviceId)
 
     def GetControlMode(self, deviceId=0, options=None):  # noqa: N802, N803
-        """Returns:
-        The ``ControlModeInformation`` of actuator ``deviceId``."""
+        """One actuator's control mode (``KortexEmulator.control_mode_of``).
+
+        Args:
+            deviceId: the actuator's device id. options: ``RouterClientSendOptions``.
+
+        Returns:
+            The ``ControlModeInformation`` of that actuator.
+        """
         emu = self._configuration("GetControlMode", options)
         return ControlModeInformation(control_mode=emu.control_mode_of(deviceId))
 

@@ -43,8 +43,11 @@ class InjectionSchedule:
         self._events: list[Injection] = []
 
     def add(self, event: Injection) -> None:
-        """Args:
-        event: the ``Injection`` to come."""
+        """Schedule an event.
+
+        Args:
+            event: the ``Injection`` to come.
+        """
         self._events.append(event)
 
     def due(self, kind: str, t: float) -> Injection | None:

@@ -31,13 +31,19 @@ class KException(Exception):
         self.code, self.sub_code = code, sub_code
 
     def get_error_code(self) -> int:
-        """Returns:
-        The error code."""
+        """The error code.
+
+        Returns:
+            ``code``.
+        """
         return self.code
 
     def get_error_sub_code(self) -> int:
-        """Returns:
-        The error sub-code."""
+        """The error sub-code.
+
+        Returns:
+            ``sub_code``.
+        """
         return self.sub_code
 
 
@@ -61,7 +67,9 @@ class ProtoEnum:
         self._values = values
 
     def Value(self, name: str) -> int:  # noqa: N802 - protobuf's name
-        """Args:
+        """The number of a name.
+
+        Args:
             name: a name of the enum.
 
         Returns:
@@ -75,7 +83,9 @@ class ProtoEnum:
         return self._values[name]
 
     def Name(self, number: int) -> str:  # noqa: N802 - protobuf's name
-        """Args:
+        """The name of a number.
+
+        Args:
             number: a number of the enum.
 
         Returns:
@@ -90,8 +100,11 @@ class ProtoEnum:
         raise ValueError(f"enum has no value {number}")
 
     def items(self) -> ItemsView[str, int]:
-        """Returns:
-        The (name, number) pairs of the enum."""
+        """The enum's values.
+
+        Returns:
+            The (name, number) pairs.
+        """
         return self._values.items()
 
 

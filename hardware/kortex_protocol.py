@@ -29,20 +29,26 @@ MAX_CURRENT = 11.0
 
 
 def wrap_deg(x: np.ndarray) -> np.ndarray:
-    """Args:
+    """Angles wrapped into [0, 360) deg.
+
+    Args:
         x: angles, deg.
 
     Returns:
-        The same angles in [0, 360) deg."""
+        The same angles in [0, 360) deg.
+    """
     return np.mod(x, 360.0)
 
 
 def diff_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Args:
+    """The difference of two angles, wrapped.
+
+    Args:
         a, b: angles, deg.
 
     Returns:
-        a - b in (-180, 180] deg."""
+        a - b in (-180, 180] deg.
+    """
     return (np.asarray(a) - np.asarray(b) + 180.0) % 360.0 - 180.0
 
 

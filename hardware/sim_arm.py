@@ -80,9 +80,16 @@ def _read_only(a: np.ndarray) -> np.ndarray:
 def simulation_spec(robot: Robot, joints: Sequence[int]) -> mujoco.MjSpec:
     """The simulators' model of ``robot`` (its reduced model, ``Robot.spec``) before compiling:
     a 1 ms implicitfast step, no contacts, the model's own actuators removed and one actuator
-    per joint index in ``joints``, named
-    ``jaxcomp_drive_<joint>`` (gain 1, affine bias: a servo or a torque source, set by the
-    simulator)."""
+    per joint index in ``joints``, named ``jaxcomp_drive_<joint>`` (gain 1, affine bias: a
+    servo or a torque source, set by the simulator).
+
+    Args:
+        robot: the nominal model.
+        joints: indices (into ``robot.joint_names``) of the joints that get a drive.
+
+    Returns:
+        The MuJoCo spec, not compiled.
+    """
     spec = robot.spec()
     for act in list(spec.actuators):  # the model's own actuators give way to the drives
         spec.delete(act)
@@ -300,10 +307,15 @@ class Simulator:
 
     @property
     def faults(self) -> tuple[str, ...]:
+        """The latched fault messages, oldest first."""
         return tuple(self._faults)
 
     def set_modes(self, changes: dict[int, ControlMode]) -> None:
-        """Switch arm joints' modes (joint index -> mode); servo modes start holding q."""
+        """Switch arm joints' modes; servo modes start holding q.
+
+        Args:
+            changes: arm joint index -> its new mode.
+        """
         for j, mode in changes.items():
             self._mode[j] = _CODE[mode]
         self._apply_modes(changes)
@@ -328,7 +340,12 @@ class Simulator:
         self._over_effort = False
 
     def set_targets(self, position: np.ndarray, velocity: np.ndarray, current: np.ndarray) -> None:
-        """This step's targets (n,): position rad, velocity rad/s, current A (per joint mode)."""
+        """This step's targets, each read in its joint's mode.
+
+        Args:
+            position: (n,) rad (POSITION). velocity: (n,) rad/s (VELOCITY).
+            current: (n,) A (CURRENT: torque = current / true ratio).
+        """
         if self._all_pos:
             self._q_ref = position.copy()
             self._ctrl = self.servo_kp * position
@@ -350,7 +367,11 @@ class Simulator:
         self.set_modes({j: ControlMode.POSITION for j in range(self.n)})
 
     def fault(self, message: str, joint: int | None = None) -> None:
-        """Latch a fault (of arm joint ``joint``, if one) and hold the arm, as the robot does."""
+        """Latch a fault and hold the arm, as the robot does.
+
+        Args:
+            message: the fault's message. joint: the arm joint index at fault, or None.
+        """
         if message not in self._faults:
             self._faults.append(message)
         if joint is not None:
@@ -358,10 +379,17 @@ class Simulator:
         self.hold()
 
     def clear_faults(self) -> None:
+        """Forget the latched faults (the modes stay as they are)."""
         self._faults.clear()
         self.fault_joints.clear()
 
     def arm_state(self) -> ArmState:
+        """The arm's state now.
+
+        Returns:
+            The ``ArmState``: time s, q (n,) rad, dq (n,) rad/s, current (n,) A, faults,
+            modes.
+        """
         return ArmState(
             self.data.time,
             self._v_q.copy(),
@@ -392,16 +420,28 @@ class Simulator:
     # ----------------------------------------------------------------- base
     @property
     def has_base(self) -> bool:
+        """True when the model has the mobile base's three joints (base_x, base_y, base_yaw)."""
         return len(self.base_joints) == 3
 
     def command_twist(self, twist: np.ndarray) -> None:
-        """Body twist (vx, vy, wz) for the base to follow (validated by the caller)."""
+        """Set the twist the base follows (through its ``TwistLimiter``).
+
+        Args:
+            twist: (3,) body twist (vx m/s, vy m/s, wz rad/s), validated by the caller.
+        """
         self._limiter.command(twist, self.t)
 
     def stop_base(self) -> None:
+        """Bring the base to a stop (within its limits)."""
         self._limiter.stop()
 
     def base_state(self) -> BaseState:
+        """The base's state now.
+
+        Returns:
+            The ``BaseState``: time s, pose (x m, y m, yaw rad) in the world frame, body
+            twist (vx m/s, vy m/s, wz rad/s).
+        """
         d = self.data
         x, y, yaw = d.qpos[self._bqsl].tolist()  # floats: cheaper than numpy scalars
         vxw, vyw, wz = d.qvel[self._bdsl].tolist()
@@ -412,9 +452,12 @@ class Simulator:
     # ----------------------------------------------------------------- interaction
     @cached_property
     def max_push_force(self) -> float:
-        """N, the largest force a push or wrench may put on the end effector:
-        ``PUSH_LIMIT_WEIGHTS`` times the weight (standard gravity) of the links the arm's
-        joints move (0 without arm joints)."""
+        """The largest force a push or wrench may put on the end effector.
+
+        Returns:
+            N, ``PUSH_LIMIT_WEIGHTS`` times the weight (standard gravity) of the links the
+            arm's joints move (0 without arm joints).
+        """
         tree = self.robot.tree
         moved = tree.moves[self.arm_joints].any(axis=0) if self.n else np.zeros(tree.nb, bool)
         mass = float(np.sum(tree.nominal.mass[moved]))
@@ -431,23 +474,50 @@ class Simulator:
             )
 
     def set_wrench(self, force=(0.0, 0.0, 0.0), torque=(0.0, 0.0, 0.0)) -> None:
-        """A constant force N and torque N m (world frame) at the end-effector point; the
-        force at most ``max_push_force``."""
+        """A constant wrench at the end-effector point until changed.
+
+        Args:
+            force: (3,) N, world frame, at most ``max_push_force``.
+            torque: (3,) N m, world frame.
+
+        Raises:
+            InputError: a force beyond ``max_push_force`` or not a finite 3-vector.
+        """
         self._check_force(force, "wrench")
         self.interaction.set_wrench(force, torque)
         self._clear_xfrc()
 
     def push(self, start: float, duration: float, force, torque=(0.0, 0.0, 0.0)) -> Push:
-        """Push ``force`` N (world, at most ``max_push_force``) on the end effector from
-        ``start`` for ``duration`` s."""
+        """Push on the end effector for a while.
+
+        Args:
+            start: s, simulation time it begins. duration: s.
+            force: (3,) N, world frame, at most ``max_push_force``.
+            torque: (3,) N m, world frame.
+
+        Returns:
+            The ``Push``.
+
+        Raises:
+            InputError: a force beyond ``max_push_force`` or not a finite 3-vector.
+        """
         self._check_force(force, "push")
         return self.interaction.add_push(start, duration, force, torque)
 
     def attach_rope(self, anchor, free_length: float, stiffness: float) -> Rope:
-        """A rope with a spring from the end effector to ``anchor`` (world, m); see ``Rope``."""
+        """A rope with a spring from the end effector to a fixed point (see ``Rope``).
+
+        Args:
+            anchor: (3,) m, world frame. free_length: m, slack within this distance of it.
+            stiffness: N/m of the spring.
+
+        Returns:
+            The ``Rope``.
+        """
         return self.interaction.attach_rope(anchor, free_length, stiffness)
 
     def detach_rope(self) -> None:
+        """Remove the rope, if any."""
         self.interaction.detach_rope()
         self._clear_xfrc()
 
@@ -456,7 +526,11 @@ class Simulator:
             self.data.xfrc_applied[self._ee_body] = 0.0
 
     def ee_position(self) -> np.ndarray:
-        """(3,) world position of the end-effector site, m (as of the last step)."""
+        """The end-effector site's position (as of the last step).
+
+        Returns:
+            (3,) m, world frame.
+        """
         return self.data.site_xpos[self._ee_site].copy()
 
     def _apply_interaction(self) -> None:
@@ -479,7 +553,11 @@ class Simulator:
 
     # ----------------------------------------------------------------- stepping
     def step(self, n: int = 1, pace: bool = True) -> None:
-        """Advance ``n`` steps of 1 ms with the current targets."""
+        """Advance with the current targets.
+
+        Args:
+            n: steps of 1 ms. pace: with ``realtime``, keep pace with the wall clock.
+        """
         m, d, na = self.model, self.data, self.n
         for _ in range(n):
             if na:
@@ -611,7 +689,14 @@ class Simulator:
 
     @cached_property
     def arm(self) -> SimArm:
-        """The ``Arm`` interface of this simulator."""
+        """The ``Arm`` interface of this simulator.
+
+        Returns:
+            Its ``SimArm`` (one per simulator).
+
+        Raises:
+            ModelError: the model has no arm joints.
+        """
         if self.n == 0:
             raise ModelError(f"{self.robot.name} has no arm joints")
         return SimArm(self)

@@ -108,7 +108,17 @@ class PushSchedule(NamedTuple):
 
     @classmethod
     def from_pushes(cls, pushes: Sequence[Sequence[Push]]) -> PushSchedule:
-        """One list of ``Push`` per world (padded with zero forces to the longest list)."""
+        """A schedule of pushes, world by world.
+
+        Args:
+            pushes: one list of ``Push`` (force only) per world.
+
+        Returns:
+            The schedule, padded with zero forces to the longest list.
+
+        Raises:
+            InputError: no world, or a push with a torque.
+        """
         if not pushes:
             raise InputError("pushes is empty: give one list of Push per world")
         width = max(1, max(len(p) for p in pushes))
@@ -122,7 +132,17 @@ class PushSchedule(NamedTuple):
         return cls(start, dur, force)
 
     def checked(self, worlds: int) -> PushSchedule:
-        """Float arrays of the right shapes, finite, start >= 0, duration > 0 (InputError)."""
+        """The schedule checked for ``worlds`` worlds.
+
+        Args:
+            worlds: W.
+
+        Returns:
+            The schedule as float arrays: start, duration (W, P) s, force (W, P, 3) N.
+
+        Raises:
+            InputError: other shapes, a value not finite, start < 0 or duration <= 0.
+        """
         start, dur, force = (np.asarray(a, dtype=float) for a in self)
         if start.ndim != 2 or start.shape[0] != worlds or dur.shape != start.shape:
             raise InputError(

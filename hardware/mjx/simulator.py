@@ -126,12 +126,26 @@ class MjxSimulator:
     # ------------------------------------------------------------------ public
     @property
     def backend(self) -> str:
+        """JAX's default backend ("cpu", "gpu", ...), which the runs compile for."""
         return jax.default_backend()
 
     def world_fields(self, truth: BatchTruth) -> dict[str, np.ndarray]:
-        """The per-world arrays (W, ...) a run feeds the vmapped step (host, self.dtype):
-        MJX model fields by their tree path (``WORLD_MODEL_FIELDS``), plus ``kp`` N m/rad,
-        ``ratio`` A/(N m) and ``noise`` A."""
+        """The per-world arrays a run feeds the vmapped step.
+
+        Args:
+            truth: the worlds' true robots (W worlds, this simulator's joints and links).
+
+        Returns:
+            Host arrays (W, ...) of ``dtype``: MJX model fields by their tree path
+            (``WORLD_MODEL_FIELDS``; body_ipos m in the body frame, dof_frictionloss N m,
+            dof_damping N m s/rad, actuator_biasprm, opt.gravity m/s^2 world frame,
+            body_mass kg with a payload), plus ``kp`` (n,) N m/rad, ``ratio`` (n,) A/(N m)
+            and ``noise`` () A.
+
+        Raises:
+            InputError: a truth for other joints or links, or with a payload the simulator
+                was built without.
+        """
         m, w, n = self.model, truth.worlds, self.n
         if truth.ratio.shape[1] != n or truth.com_offset.shape[1] != len(self._body_ids):
             raise InputError(
@@ -174,7 +188,16 @@ class MjxSimulator:
         initial_pose: str | Sequence[float] | np.ndarray | None = None,
         settle_steps: int = SETTLE_STEPS,
     ) -> np.ndarray:
-        """Each world's settled pose (W, n) rad at t = 0 (the start a plan begins from)."""
+        """Each world's settled pose at t = 0 (the start a plan begins from).
+
+        Args:
+            truth: the worlds' true robots (W worlds).
+            initial_pose: a pose name, (n,) or (W, n) rad; None: ``Robot.idle_pose``.
+            settle_steps: steps of the settling.
+
+        Returns:
+            (W, n) rad.
+        """
         rec = self.run(truth, np.zeros((0, self.n)), initial_pose, settle_steps=settle_steps)
         return rec.q_start
 
@@ -331,8 +354,11 @@ class MjxSimulator:
         return call
 
     def run_clock(self) -> RunClock:
-        """Returns:
-        A clock of the run starting now (``RunClock``)."""
+        """A clock of the run starting now.
+
+        Returns:
+            The ``RunClock``.
+        """
         return RunClock(self)
 
 
@@ -353,9 +379,11 @@ class RunClock:
         self.marks = [(time.perf_counter(), sim.compile_seconds)]
 
     def mark(self) -> None:
+        """End a phase now."""
         self.marks.append((time.perf_counter(), self.sim.compile_seconds))
 
     def finish(self) -> None:
+        """End the last phase and set ``sim.last_timing`` (prepare, settle, plan s)."""
         self.mark()
         spans = zip(self.marks[:-1], self.marks[1:], strict=True)
         seconds = [(t1 - t0) - (c1 - c0) for (t0, c0), (t1, c1) in spans]
