@@ -149,7 +149,15 @@ class SessionManager:
 
 
 class _Client:
-    """A service client on a router; its transport's emulator answers its calls."""
+    """A service client on a router; its transport's emulator answers its calls.
+
+    Args:
+        router: the ``RouterClient`` of the service's channel.
+
+    Every call takes kortex_api's ``deviceId`` (the actuator's device id where the call is
+    for one; else unused) and ``options`` (``RouterClientSendOptions``: the reply's
+    ``timeout_ms``; None: kortex_api's default 10 s).
+    """
 
     service = ""
 
@@ -170,11 +178,7 @@ class _Client:
 
 
 class BaseClient(_Client):
-    """The Base service (configuration channel): servoing mode, faults, arm state.
-
-    Args:
-        router: the TCP channel's ``RouterClient``.
-    """
+    """The Base service (on the TCP router): servoing mode, faults, arm state."""
 
     service = "Base"
 
@@ -182,50 +186,27 @@ class BaseClient(_Client):
         """Switch the base's servoing mode (``KortexEmulator.set_servoing_mode``).
 
         Args:
-            info: a ``ServoingModeInformation``. deviceId: as kortex_api.
-            options: ``RouterClientSendOptions``.
+            info: a ``ServoingModeInformation``.
         """
         self._configuration("SetServoingMode", options).set_servoing_mode(info)
 
     def GetServoingMode(self, deviceId=0, options=None):  # noqa: N802, N803
-        """The base's servoing mode.
-
-        Args:
-            deviceId, options: as kortex_api (``RouterClientSendOptions``).
-
-        Returns:
-            The base's ``ServoingModeInformation``.
-        """
+        """The base's servoing mode, a ``ServoingModeInformation``."""
         emu = self._configuration("GetServoingMode", options)
         return ServoingModeInformation(servoing_mode=emu.servoing_mode)
 
     def ClearFaults(self, deviceId=0, options=None) -> None:  # noqa: N802, N803
-        """Clear every actuator and arm fault (``KortexEmulator.clear_faults``).
-
-        Args:
-            deviceId, options: as kortex_api (``RouterClientSendOptions``).
-        """
+        """Clear every actuator and arm fault (``KortexEmulator.clear_faults``)."""
         self._configuration("ClearFaults", options).clear_faults()
 
     def GetArmState(self, deviceId=0, options=None):  # noqa: N802, N803
-        """The arm's state (``KortexEmulator.arm_state``).
-
-        Args:
-            deviceId, options: as kortex_api (``RouterClientSendOptions``).
-
-        Returns:
-            The arm's ``ArmStateInformation``.
-        """
+        """The arm's state, an ``ArmStateInformation`` (``KortexEmulator.arm_state``)."""
         emu = self._configuration("GetArmState", options)
         return ArmStateInformation(active_state=emu.arm_state)
 
 
 class BaseCyclicClient(_Client):
-    """The BaseCyclic service (cyclic channel): the 1 kHz exchange.
-
-    Args:
-        router: the UDP channel's ``RouterClient``.
-    """
+    """The BaseCyclic service (on the UDP router): the 1 kHz exchange."""
 
     service = "BaseCyclic"
 
@@ -233,7 +214,7 @@ class BaseCyclicClient(_Client):
         """One cyclic exchange (``KortexEmulator.refresh``).
 
         Args:
-            command: a ``Command``. options: ``RouterClientSendOptions``.
+            command: a ``Command``.
 
         Returns:
             The ``Feedback`` after the command's 1 ms.
@@ -241,23 +222,12 @@ class BaseCyclicClient(_Client):
         return self._cyclic("Refresh").refresh(command, options)
 
     def RefreshFeedback(self, deviceId=0, options=None):  # noqa: N802, N803
-        """The feedback without a command (``KortexEmulator.refresh_feedback``).
-
-        Args:
-            deviceId, options: as kortex_api (the emulator answers at once).
-
-        Returns:
-            The current ``Feedback`` (no command).
-        """
+        """The current ``Feedback``, without a command (``KortexEmulator.refresh_feedback``)."""
         return self._cyclic("RefreshFeedback").refresh_feedback()
 
 
 class ActuatorConfigClient(_Client):
-    """The ActuatorConfig service (configuration channel): actuators' control modes.
-
-    Args:
-        router: the TCP channel's ``RouterClient``.
-    """
+    """The ActuatorConfig service (on the TCP router): the actuators' control modes."""
 
     service = "ActuatorConfig"
 
@@ -266,19 +236,12 @@ class ActuatorConfigClient(_Client):
 
         Args:
             info: a ``ControlModeInformation``. deviceId: the actuator's device id.
-            options: ``RouterClientSendOptions``.
         """
         self._configuration("SetControlMode", options).set_control_mode(info, deviceId)
 
     def GetControlMode(self, deviceId=0, options=None):  # noqa: N802, N803
-        """One actuator's control mode (``KortexEmulator.control_mode_of``).
-
-        Args:
-            deviceId: the actuator's device id. options: ``RouterClientSendOptions``.
-
-        Returns:
-            The ``ControlModeInformation`` of that actuator.
-        """
+        """Actuator ``deviceId``'s control mode, a ``ControlModeInformation``
+        (``KortexEmulator.control_mode_of``)."""
         emu = self._configuration("GetControlMode", options)
         return ControlModeInformation(control_mode=emu.control_mode_of(deviceId))
 
