@@ -251,6 +251,57 @@ def run(
     Raises:
         InputError: an argument out of its range, shape or kind.
     """
+    steps, settle_steps, every = _checked_counts(steps, settle_steps, every, policy, state)
+    w = truth.worlds
+    ref = _checked_reference(reference, steps)
+    if pushes is None:
+        pushes = PushSchedule(np.zeros((w, 1)), np.ones((w, 1)), np.zeros((w, 1, 3)))
+    pushes = pushes.checked(w)
+    params = _per_world(params, w, "params")
+    clock = sim.run_clock()
+    loop = _prepare(sim, truth, policy, params, state, ref, pushes, initial_pose, seed, world_ids)
+    chunk = _chunk(sim, len(loop.q0), every, max(steps, settle_steps))
+    loop = _compile(sim, loop, policy, every, chunk, ref)
+    clock.mark()
+    carry = _settle(loop, ref, settle_steps)
+    q_start = np.asarray(carry[0])[:w].astype(float)
+    clock.mark()
+    carry, out = _close_loop(sim, loop, ref, carry, w, every, progress)
+    final = jax.tree_util.tree_map(lambda a: np.asarray(a)[:w], carry)
+    clock.finish()
+    n_rec = -(-steps // every) if every else 0
+    return ClosedLoopResult(
+        (np.arange(n_rec) * every + 1) * CONTROL_PERIOD if every else np.zeros(0),
+        *(out.get(k) for k in _RECORDED),
+        state=final[5],
+        q_start=q_start,
+        fault_step=final[7].astype(int),
+        fault_code=final[8].astype(int),
+        every=every,
+    )
+
+
+#: What the closed loop records of each step (``ClosedLoopResult``).
+_RECORDED = ("q", "dq", "current", "command")
+
+
+class _Loop(NamedTuple):
+    """A closed-loop run's compiled chunk function and its inputs (Wp worlds, padded)."""
+
+    fn: Callable | None
+    fields: dict  # per world, placed on the device(s)
+    params: PyTree  # per world, placed
+    carry: tuple  # the initial carry, placed
+    q0: np.ndarray  # (Wp, n) rad, the initial poses
+    chunk: int
+    put: Callable
+    put_shared: Callable
+
+
+def _checked_counts(
+    steps: int, settle_steps: int, every: int, policy: Policy, state: PyTree | None
+) -> tuple[int, int, int]:
+    """The step counts as ints, the policy and its initial state checked (InputError)."""
     steps, settle_steps, every = int(steps), int(settle_steps), int(every)
     if steps < 1:
         raise InputError(f"steps must be >= 1, got {steps}")
@@ -273,17 +324,33 @@ def run(
             if state is not None
             else "policy.init is None: give the initial policy state (state)"
         )
-    w, n, dtype = truth.worlds, sim.n, sim.dtype
+    return steps, settle_steps, every
+
+
+def _checked_reference(reference: np.ndarray | None, steps: int) -> np.ndarray:
+    """The reference (steps + 1, m), finite (an empty row per sample without one)."""
     ref = np.zeros((steps + 1, 0)) if reference is None else np.asarray(reference, float)
     if ref.ndim != 2 or ref.shape[0] != steps + 1 or not np.isfinite(ref).all():
         raise InputError(
             f"reference must be a finite (steps + 1 = {steps + 1}, m) array, got shape {ref.shape}"
         )
-    if pushes is None:
-        pushes = PushSchedule(np.zeros((w, 1)), np.ones((w, 1)), np.zeros((w, 1, 3)))
-    pushes = pushes.checked(w)
-    params = _per_world(params, w, "params")
-    clock = sim.run_clock()
+    return ref
+
+
+def _prepare(
+    sim: MjxSimulator,
+    truth: BatchTruth,
+    policy: Policy,
+    params: PyTree,
+    state: PyTree | None,
+    ref: np.ndarray,
+    pushes: PushSchedule,
+    initial_pose: str | Sequence[float] | np.ndarray | None,
+    seed: int,
+    world_ids: Sequence[int] | np.ndarray | None,
+) -> _Loop:
+    """The worlds' fields, params, poses and initial policy state, padded (not yet placed)."""
+    w, n, dtype = truth.worlds, sim.n, sim.dtype
     q0 = sim.initial_poses(initial_pose, w)
     fields = sim.world_fields(truth)
     fields.update(
@@ -304,16 +371,29 @@ def run(
         with sim.precision():
             shapes = jax.eval_shape(jax.vmap(policy.init), params, obs)
         pstate = jax.tree_util.tree_map(lambda sd: np.zeros(sd.shape, sd.dtype), shapes)
-    if every:
-        chunk = sim.chunk_length(wp, every, max(steps, settle_steps))
-    else:
-        chunk = sim.chunk_steps or (100 if sim.backend == "cpu" else 1000)
-        chunk = min(int(chunk), max(steps, settle_steps))
-    put, put_shared = placement(sim.mesh)
-    fields, params = put(fields), put(params)
-    no_fault = np.full(wp, -1, np.int32)
     carry = (q0, zeros, zeros, np.zeros((wp, 3), dtype), zeros, pstate, q0)
-    carry = put(carry + (no_fault, np.zeros(wp, np.int32)))
+    put, put_shared = placement(sim.mesh)
+    return _Loop(None, fields, params, carry, q0, 0, put, put_shared)
+
+
+def _chunk(sim: MjxSimulator, wp: int, every: int, steps: int) -> int:
+    """Steps per compiled call: as ``MjxSimulator.chunk_length`` when recording, else
+    ``chunk_steps`` (default 100 on the CPU, else 1000), at most ``steps``."""
+    if every:
+        return sim.chunk_length(wp, every, steps)
+    chunk = sim.chunk_steps or (100 if sim.backend == "cpu" else 1000)
+    return min(int(chunk), steps)
+
+
+def _compile(
+    sim: MjxSimulator, loop: _Loop, policy: Policy, every: int, chunk: int, ref: np.ndarray
+) -> _Loop:
+    """The loop's inputs placed on the device(s) and its compiled chunk function of ``chunk``
+    steps."""
+    put, wp = loop.put, len(loop.q0)
+    fields, params = put(loop.fields), put(loop.params)
+    no_fault = np.full(wp, -1, np.int32)
+    carry = put(loop.carry + (no_fault, np.zeros(wp, np.int32)))
     # the compiled step sees (chunk, m) rows of the reference, never its length; the limits
     # it closes over are part of the key
     current_limit = tuple(np.asarray(sim.current_limit, float).tolist())
@@ -330,18 +410,43 @@ def run(
     fn = sim.compiled_function(
         key, lambda: _build(sim, policy, every, sim.overspeed, np.array(current_limit))
     )
-    clock.mark()
+    return loop._replace(fn=fn, fields=fields, params=params, carry=carry, chunk=chunk)
 
-    def rows(first: int) -> jax.Array:  # reference rows of samples first .. first+chunk-1
-        return put_shared(ref[np.clip(np.arange(first, first + chunk), 0, steps)])
 
+def _rows(loop: _Loop, ref: np.ndarray, first: int) -> jax.Array:
+    """The reference rows of samples first .. first + chunk - 1 (clipped to the plan), placed."""
+    steps = ref.shape[0] - 1
+    return loop.put_shared(ref[np.clip(np.arange(first, first + loop.chunk), 0, steps)])
+
+
+def _settle(loop: _Loop, ref: np.ndarray, settle_steps: int) -> tuple:
+    """The carry after the settling (steps -settle_steps .. -1, held in POSITION mode)."""
+    carry, chunk = loop.carry, loop.chunk
     for s in range(-settle_steps, 0, chunk):
-        carry, _, _ = fn(fields, params, carry, rows(s + 1), np.int32(s), np.int32(min(chunk, -s)))
-    q_start = np.asarray(carry[0])[:w].astype(float)
-    clock.mark()
+        carry, _, _ = loop.fn(
+            loop.fields,
+            loop.params,
+            carry,
+            _rows(loop, ref, s + 1),
+            np.int32(s),
+            np.int32(min(chunk, -s)),
+        )
+    return carry
+
+
+def _close_loop(
+    sim: MjxSimulator,
+    loop: _Loop,
+    ref: np.ndarray,
+    carry: tuple,
+    w: int,
+    every: int,
+    progress: Callable[[int, int], None] | None,
+) -> tuple[tuple, dict[str, np.ndarray]]:
+    """The closed loop from t = 0, chunk by chunk: the final carry and the recorded samples."""
+    steps, n, chunk = ref.shape[0] - 1, sim.n, loop.chunk
     n_rec = -(-steps // every) if every else 0
-    names = ("q", "dq", "current", "command")
-    out = {k: np.zeros((w, n_rec, n), dtype) for k in names} if every else {}
+    out = {k: np.zeros((w, n_rec, n), sim.dtype) for k in _RECORDED} if every else {}
 
     def collect(pending: tuple) -> None:
         """Copy a chunk's samples to the host and report progress."""
@@ -357,23 +462,15 @@ def run(
     pending: tuple | None = None
     for s in range(0, steps, chunk):
         k = min(chunk, steps - s)
-        carry, rec, faulted = fn(fields, params, carry, rows(s + 1), np.int32(s), np.int32(k))
+        carry, rec, faulted = loop.fn(
+            loop.fields, loop.params, carry, _rows(loop, ref, s + 1), np.int32(s), np.int32(k)
+        )
         if pending is not None:  # host work overlaps the chunk just dispatched
             collect(pending)
         pending = (s, k, rec, faulted)
     if pending is not None:
         collect(pending)
-    final = jax.tree_util.tree_map(lambda a: np.asarray(a)[:w], carry)
-    clock.finish()
-    return ClosedLoopResult(
-        (np.arange(n_rec) * every + 1) * CONTROL_PERIOD if every else np.zeros(0),
-        *(out.get(k) for k in names),
-        state=final[5],
-        q_start=q_start,
-        fault_step=final[7].astype(int),
-        fault_code=final[8].astype(int),
-        every=every,
-    )
+    return carry, out
 
 
 def _build(
