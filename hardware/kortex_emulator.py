@@ -1,27 +1,23 @@
 """A Kinova Kortex emulator backed by the simulated arm.
 
 ``KortexEmulator().api`` has the names the Kortex adapter takes from ``kortex_api``
-(``kortex_fake_api``: transports, router and its send options, session manager,
-``BaseClient``, ``BaseCyclicClient``, ``ActuatorConfigClient``, the ``*_pb2`` message modules
-of ``kortex_messages``, ``KServerException``, ``KClientException``), with the same method names
-and message fields (assigning any other field raises, as protobuf does), so the adapter runs
-unchanged against it; each of their calls comes to one of the emulator's services here.
-Behind them a ``Simulator`` plays the Gen3 Lite and the emulator enforces the protocol of
-shared/reference/FIGURES.md:
+(``kortex_fake_api``, with the messages of ``kortex_messages``), with the same method names and
+message fields, so the adapter runs unchanged against it; each of their calls comes to one of
+the emulator's services here. Behind them a ``Simulator`` plays the Gen3 Lite and the emulator
+enforces the protocol of shared/reference/FIGURES.md:
 
 - configuration calls over TCP port 10000, ``BaseCyclic`` over UDP port 10001, both in an open
   session; actuator device ids 1, 2, 3, 4, 5 and 7;
-- ``Refresh`` only in LOW_LEVEL_SERVOING; each command's ``frame_id`` must advance (mod 65536)
-  and every actuator's ``command_id`` equal it, else the command is rejected;
+- ``Refresh`` only in LOW_LEVEL_SERVOING, with a command the arm takes (``kortex_protocol``:
+  ``frame_id`` advancing mod 65536, every actuator's ``command_id`` equal to it);
 - a commanded position further than ``following_error_deg`` from the measured one raises a
   following-error fault on that actuator (the arm then holds: it is in fault);
 - ``SetControlMode(CURRENT or VELOCITY)`` before LOW_LEVEL_SERVOING is refused; leaving low-level
   servoing or closing the session with an actuator not in POSITION mode is a violation, and so
-  is a switch to CURRENT or VELOCITY in low-level servoing that no hold frame precedes: the
-  last cyclic command before it, received after the previous switch, must start the new mode
-  exactly where the last feedback the host received left the actuator (its measured current,
-  for CURRENT; velocity 0, for VELOCITY; its measured position, for POSITION from another
-  mode). Every switch is logged in ``switches`` (``SwitchRecord``).
+  is a switch to CURRENT or VELOCITY in low-level servoing that no hold frame precedes (the last
+  cyclic command before it, received after the previous switch, must start the new mode where
+  the last feedback the host received left the actuator: ``starts_where_seen``). Every switch
+  is logged in ``switches`` (``SwitchRecord``).
 
 It produces what the arm produces: the arm state in ``Feedback.base.active_state`` and
 ``GetArmState`` (ARMSTATE_SERVOING_READY, ARMSTATE_SERVOING_LOW_LEVEL once in low-level
@@ -30,15 +26,13 @@ servoing, ARMSTATE_IN_FAULT on any fault), arm-level fault bits (``Base.SafetyId
 take ``config_latency`` s (the arm runs on the last cyclic command meanwhile), replies that
 never come (the caller waits its ``timeout_ms`` and gets ``TimeoutError``, as kortex_api's
 future does) and the host's jitter (each send late by up to ``jitter`` s, seen in ``clock()``
-and in the actuators' ``jitter_comm``).
+and in the actuators' ``jitter_comm``). Every refusal is also appended to ``violations``.
 
-Every refusal is also appended to ``violations``. Units on the wire are Kortex's: positions in
-deg in [0, 360), velocities deg/s, currents A, floats rounded to float32. Time is the
-simulator's (lock step: 1 ms per ``Refresh``); ``clock()`` reads it (plus the host's lateness).
-Injections: ``inject_stall`` (the caller misses cycles), ``inject_stale`` (no new feedback
-frames), ``inject_fault`` (an actuator fault bit), ``inject_arm_fault`` (an arm-level fault),
-``inject_lost`` (lost replies, lost commands, client errors), ``inject_config_timeout``
-(configuration calls without a reply); constructor options draw lost replies at random
+Units on the wire are Kortex's: positions in deg in [0, 360), velocities deg/s, currents A,
+floats rounded to float32. Time is the simulator's (lock step: 1 ms per ``Refresh``);
+``clock()`` reads it (plus the host's lateness). Injections (``kortex_injections``):
+``inject_stall``, ``inject_stale``, ``inject_fault``, ``inject_arm_fault``, ``inject_lost``,
+``inject_config_timeout``; constructor options draw lost replies at random
 (``lost_reply_rate``) and the jitter (``jitter``, ``seed``).
 """
 
@@ -76,7 +70,7 @@ from jaxcomp.hardware.kortex_protocol import (
     starts_where_seen,
     wrap_deg,
 )
-from jaxcomp.hardware.sim_arm import Simulator
+from jaxcomp.hardware.simulator import Simulator
 
 #: ActuatorConfig.ControlMode numbers the Gen3 Lite has, as the simulator's modes.
 _TO_MODE = {1: ControlMode.POSITION, 2: ControlMode.VELOCITY, 4: ControlMode.CURRENT}

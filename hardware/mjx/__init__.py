@@ -1,6 +1,6 @@
 """The simulated arm on MJX: thousands of true robots driven by one plan or policy at once.
 
-``MjxSimulator`` is the CPU ``Simulator`` (hardware/sim_arm.py) of an arm-only model, batched
+``MjxSimulator`` is the CPU ``Simulator`` (hardware/simulator.py) of an arm-only model, batched
 over worlds with ``jax.vmap``: the same MuJoCo model (actuators, 1 ms implicitfast step, stiff
 friction-loss solver reference), the same servo ``tau = clip(kp (q_ref - q) + kv (0 - dq),
 effort)`` with the same per-joint gains (computed as the CPU simulator does, from each world's

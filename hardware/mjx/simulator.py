@@ -103,10 +103,12 @@ class MjxSimulator:
         )
         self._payload_id = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, PAYLOAD_BODY)
         self._hard = self.robot.joint_limits[arm_joint_indices(self.robot)]
+        self._hard.flags.writeable = False  # public, read-only (``joint_limits``)
         self.effort = np.abs(m.jnt_actfrcrange).max(1)
         # CURRENT mode (run_closed_loop): torque limits (inf where none), the arm's current
         # limits (A, as ArmLimits), the end-effector site and its body (pushes)
         self._torque_limit = np.where(m.jnt_actfrclimited.astype(bool), self.effort, np.inf)
+        self._torque_limit.flags.writeable = False  # public, read-only (``torque_limit``)
         self.current_limit = ArmLimits.from_robot(self.robot, arm_joint_indices(self.robot)).current
         site = end_effector_site(self.robot)
         self._ee_site = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, site)
@@ -226,13 +228,13 @@ class MjxSimulator:
     @property
     def joint_limits(self) -> np.ndarray:
         """(n, 2) rad, read-only: each arm joint's hard limits [lower, upper]."""
-        return _read_only(self._hard)
+        return self._hard
 
     @property
     def torque_limit(self) -> np.ndarray:
         """(n,) N m, read-only: each actuator's effort limit in CURRENT mode (inf where the
         model sets none)."""
-        return _read_only(self._torque_limit)
+        return self._torque_limit
 
     @property
     def ee_site(self) -> int:
@@ -360,13 +362,6 @@ class MjxSimulator:
             The ``RunClock``.
         """
         return RunClock(self)
-
-
-def _read_only(a: np.ndarray) -> np.ndarray:
-    """A view of ``a`` that cannot be written to."""
-    view = a.view()
-    view.flags.writeable = False
-    return view
 
 
 class RunClock:
