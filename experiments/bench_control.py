@@ -49,10 +49,8 @@ from jaxcomp.control import (  # noqa: E402
     make_impedance_controller,
 )
 from jaxcomp.control.timing import configure_jax_for_control, realtime_priority  # noqa: E402
+from jaxcomp.hardware import PAPER_FRICTION, PAPER_RATIO  # noqa: E402
 from jaxcomp.robot_params import RobotParams  # noqa: E402
-
-PAPER_RATIO = [1.0282, 0.3074, 1.0282, 1.9074, 2.0373, 1.9724]  # A/(N m)
-PAPER_FRICTION = [0.5318, 1.4776, 0.6695, 0.3013, 0.3732, 0.5923]  # A
 
 
 def cpu_name() -> str:

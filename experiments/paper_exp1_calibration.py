@@ -34,17 +34,12 @@ from paper_common import (
     save_figure,
 )
 
-from jaxcomp.hardware import TrueRobot
+from jaxcomp.hardware import PAPER_FRICTION, PAPER_RATIO, TrueRobot
 from jaxcomp.identify import fit
 from jaxcomp.identify.evaluate import gravity_current_error, random_poses
 from jaxcomp.identify.fitting import METHODS
 from jaxcomp.robot_params import RobotParams
 
-#: Current/torque ratios (A/(N m)) and friction losses (A) the paper identified on its real
-#: arm, joints 0..5 (the values of Figs. 11-12's calibration, the authors' published code);
-#: the simulator's default truth is made of them.
-PAPER_RATIO = (1.0282, 0.3074, 1.0282, 1.9074, 2.0373, 1.9724)
-PAPER_FRICTION = (0.5318, 1.4776, 0.6695, 0.3013, 0.3732, 0.5923)
 #: Paper Section VI-A: every COM box (interquartile range over the 50 rounds) under 4 mm.
 PAPER_COM_BOX = 0.004
 #: Links of the paper's Fig. 11 (upper arm, forearm, lower wrist, upper wrist).

@@ -24,8 +24,9 @@ from jaxcomp.hardware.interface import (
 from jaxcomp.hardware.kortex import KortexArm
 from jaxcomp.hardware.kortex_emulator import KortexEmulator
 from jaxcomp.hardware.mecanum import MecanumGeometry, TwistLimiter, TwistLimits
-from jaxcomp.hardware.sim_arm import SimArm, Simulator
+from jaxcomp.hardware.sim_arm import SimArm
 from jaxcomp.hardware.sim_base import SimBase
+from jaxcomp.hardware.simulator import Simulator
 from jaxcomp.hardware.truth import PAPER_FRICTION, PAPER_RATIO, TrueRobot
 
 __all__ = [

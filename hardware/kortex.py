@@ -46,6 +46,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from jaxcomp.hardware.interface import Arm, ArmLimits, ArmState, ControlMode, HardwareFault
+from jaxcomp.hardware.kortex_namespace import import_kortex_api
 from jaxcomp.robot import Robot, load_robot
 
 log = logging.getLogger(__name__)
@@ -71,51 +72,6 @@ _MODE_NAME = {
     ControlMode.VELOCITY: "VELOCITY",
     ControlMode.CURRENT: "CURRENT",
 }
-
-
-def import_kortex_api() -> SimpleNamespace:
-    """The kortex_api classes and message modules the adapter uses (lazy import)."""
-    try:
-        from kortex_api.autogen.client_stubs.ActuatorConfigClientRpc import ActuatorConfigClient
-        from kortex_api.autogen.client_stubs.BaseClientRpc import BaseClient
-        from kortex_api.autogen.client_stubs.BaseCyclicClientRpc import BaseCyclicClient
-        from kortex_api.autogen.messages import (
-            ActuatorConfig_pb2,
-            Base_pb2,
-            BaseCyclic_pb2,
-            Common_pb2,
-            Session_pb2,
-        )
-        from kortex_api.Exceptions.KClientException import KClientException
-        from kortex_api.Exceptions.KServerException import KServerException
-        from kortex_api.RouterClient import RouterClient, RouterClientSendOptions
-        from kortex_api.SessionManager import SessionManager
-        from kortex_api.TCPTransport import TCPTransport
-        from kortex_api.UDPTransport import UDPTransport
-    except ImportError as exc:
-        raise ImportError(
-            "the Kortex adapter needs Kinova's kortex_api, which is not on PyPI: download "
-            "kortex_api-2.6.0.post3-py3-none-any.whl from Kinova and run "
-            "'pip install --no-deps kortex_api-2.6.0.post3-py3-none-any.whl "
-            '"protobuf==3.20.*"\' (or use KortexArm.emulated() without an arm)'
-        ) from exc
-    return SimpleNamespace(
-        TCPTransport=TCPTransport,
-        UDPTransport=UDPTransport,
-        RouterClient=RouterClient,
-        RouterClientSendOptions=RouterClientSendOptions,
-        SessionManager=SessionManager,
-        BaseClient=BaseClient,
-        BaseCyclicClient=BaseCyclicClient,
-        ActuatorConfigClient=ActuatorConfigClient,
-        KServerException=KServerException,
-        KClientException=KClientException,
-        Session_pb2=Session_pb2,
-        Common_pb2=Common_pb2,
-        Base_pb2=Base_pb2,
-        BaseCyclic_pb2=BaseCyclic_pb2,
-        ActuatorConfig_pb2=ActuatorConfig_pb2,
-    )
 
 
 def _wrap_rad(deg: np.ndarray) -> np.ndarray:
@@ -216,7 +172,16 @@ class KortexArm(Arm):
 
     @classmethod
     def emulated(cls, emulator=None, **kwargs) -> KortexArm:
-        """An adapter on a ``KortexEmulator`` (lock step: the emulator's clock, no sleeping)."""
+        """An adapter on a ``KortexEmulator`` (lock step: the emulator's clock, no sleeping).
+
+        Args:
+            emulator: the emulator (default: a fresh ``KortexEmulator()``).
+            **kwargs: the adapter's other arguments (``clock`` and ``sleep`` default to the
+                emulator's).
+
+        Returns:
+            The open ``KortexArm``; its ``emulator`` attribute is the emulator.
+        """
         if emulator is None:
             from jaxcomp.hardware.kortex_emulator import KortexEmulator
 
@@ -651,5 +616,4 @@ __all__ = [
     "DEVICE_IDS",
     "MAX_CONSECUTIVE_LOST",
     "KortexArm",
-    "import_kortex_api",
 ]

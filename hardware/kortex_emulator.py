@@ -1,26 +1,23 @@
 """A Kinova Kortex emulator backed by the simulated arm.
 
 ``KortexEmulator().api`` has the names the Kortex adapter takes from ``kortex_api``
-(transports, router and its send options, session manager, ``BaseClient``,
-``BaseCyclicClient``, ``ActuatorConfigClient``, the ``*_pb2`` message modules,
-``KServerException``, ``KClientException``), with the same method names and message fields
-(assigning any other field raises, as protobuf does), so the adapter runs unchanged against it.
-Behind them a ``Simulator`` plays the Gen3 Lite and the emulator enforces the protocol of
-shared/reference/FIGURES.md:
+(``kortex_fake_api``, with the messages of ``kortex_messages``), with the same method names and
+message fields, so the adapter runs unchanged against it; each of their calls comes to one of
+the emulator's services here. Behind them a ``Simulator`` plays the Gen3 Lite and the emulator
+enforces the protocol of shared/reference/FIGURES.md:
 
 - configuration calls over TCP port 10000, ``BaseCyclic`` over UDP port 10001, both in an open
   session; actuator device ids 1, 2, 3, 4, 5 and 7;
-- ``Refresh`` only in LOW_LEVEL_SERVOING; each command's ``frame_id`` must advance (mod 65536)
-  and every actuator's ``command_id`` equal it, else the command is rejected;
+- ``Refresh`` only in LOW_LEVEL_SERVOING, with a command the arm takes (``kortex_protocol``:
+  ``frame_id`` advancing mod 65536, every actuator's ``command_id`` equal to it);
 - a commanded position further than ``following_error_deg`` from the measured one raises a
   following-error fault on that actuator (the arm then holds: it is in fault);
 - ``SetControlMode(CURRENT or VELOCITY)`` before LOW_LEVEL_SERVOING is refused; leaving low-level
   servoing or closing the session with an actuator not in POSITION mode is a violation, and so
-  is a switch to CURRENT or VELOCITY in low-level servoing that no hold frame precedes: the
-  last cyclic command before it, received after the previous switch, must start the new mode
-  exactly where the last feedback the host received left the actuator (its measured current,
-  for CURRENT; velocity 0, for VELOCITY; its measured position, for POSITION from another
-  mode). Every switch is logged in ``switches`` (``SwitchRecord``).
+  is a switch to CURRENT or VELOCITY in low-level servoing that no hold frame precedes (the last
+  cyclic command before it, received after the previous switch, must start the new mode where
+  the last feedback the host received left the actuator: ``starts_where_seen``). Every switch
+  is logged in ``switches`` (``SwitchRecord``).
 
 It produces what the arm produces: the arm state in ``Feedback.base.active_state`` and
 ``GetArmState`` (ARMSTATE_SERVOING_READY, ARMSTATE_SERVOING_LOW_LEVEL once in low-level
@@ -29,330 +26,78 @@ servoing, ARMSTATE_IN_FAULT on any fault), arm-level fault bits (``Base.SafetyId
 take ``config_latency`` s (the arm runs on the last cyclic command meanwhile), replies that
 never come (the caller waits its ``timeout_ms`` and gets ``TimeoutError``, as kortex_api's
 future does) and the host's jitter (each send late by up to ``jitter`` s, seen in ``clock()``
-and in the actuators' ``jitter_comm``).
+and in the actuators' ``jitter_comm``). Every refusal is also appended to ``violations``.
 
-Every refusal is also appended to ``violations``. Units on the wire are Kortex's: positions in
-deg in [0, 360), velocities deg/s, currents A, floats rounded to float32. Time is the
-simulator's (lock step: 1 ms per ``Refresh``); ``clock()`` reads it (plus the host's lateness).
-Injections: ``inject_stall`` (the caller misses cycles), ``inject_stale`` (no new feedback
-frames), ``inject_fault`` (an actuator fault bit), ``inject_arm_fault`` (an arm-level fault),
-``inject_lost`` (lost replies, lost commands, client errors), ``inject_config_timeout``
-(configuration calls without a reply); constructor options draw lost replies at random
+Units on the wire are Kortex's: positions in deg in [0, 360), velocities deg/s, currents A,
+floats rounded to float32. Time is the simulator's (lock step: 1 ms per ``Refresh``);
+``clock()`` reads it (plus the host's lateness). Injections (``kortex_injections``):
+``inject_stall``, ``inject_stale``, ``inject_fault``, ``inject_arm_fault``, ``inject_lost``,
+``inject_config_timeout``; constructor options draw lost replies at random
 (``lost_reply_rate``) and the jitter (``jitter``, ``seed``).
 """
 
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass
-from types import SimpleNamespace
 
 import numpy as np
 
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.hardware.interface import ControlMode
-from jaxcomp.hardware.sim_arm import Simulator
-
-DEVICE_IDS = (1, 2, 3, 4, 5, 7)
-TCP_PORT, UDP_PORT = 10000, 10001
-#: Fault bits of the emulator (fault_bank_a); the adapter reports any non-zero bank.
-FOLLOWING_ERROR = 1 << 4
-ARM_FAULT = 1 << 7  # a fault the simulated actuator raised (limit, torque, speed)
-MAX_TORQUE = 1 << 9
-OVERSPEED = 1 << 11
-INJECTED = 1 << 15
-
-
-class KException(Exception):
-    """kortex_api.Exceptions.KException's role: an error code and sub-code."""
-
-    def __init__(self, message: str, code: int = 1, sub_code: int = 0):
-        super().__init__(message)
-        self.code, self.sub_code = code, sub_code
-
-    def get_error_code(self) -> int:
-        return self.code
-
-    def get_error_sub_code(self) -> int:
-        return self.sub_code
-
-
-class KServerException(KException):
-    """Raised for a request the arm refused (kortex_api's KServerException)."""
-
-
-class KClientException(KException):
-    """Raised on the client side, e.g. a frame that could not be sent (kortex_api's
-    KClientException; not a KServerException)."""
-
-
-# --------------------------------------------------------------------- protobuf look-alikes
-class _Enum:
-    """A protobuf enum wrapper: ``Value(name)`` and ``Name(number)``."""
-
-    def __init__(self, **values: int):
-        self._values = values
-
-    def Value(self, name: str) -> int:  # noqa: N802 - protobuf's name
-        if name not in self._values:
-            raise ValueError(f"enum has no value named {name!r}")
-        return self._values[name]
-
-    def Name(self, number: int) -> str:  # noqa: N802 - protobuf's name
-        for k, v in self._values.items():
-            if v == number:
-                return k
-        raise ValueError(f"enum has no value {number}")
-
-    def items(self):
-        return self._values.items()
-
-
-class _Repeated:
-    """A repeated message field: ``add()``, ``extend()``, indexing, ``len``."""
-
-    def __init__(self, kind: type):
-        self._kind = kind
-        self._items: list = []
-
-    def add(self, **kw):
-        item = self._kind(**kw)
-        self._items.append(item)
-        return item
-
-    def extend(self, items) -> None:
-        for it in items:
-            self.add().CopyFrom(it)
-
-    def __getitem__(self, i):
-        return self._items[i]
-
-    def __len__(self) -> int:
-        return len(self._items)
-
-    def __iter__(self):
-        return iter(self._items)
-
-
-class _Message:
-    """A protobuf message look-alike: declared fields only, typed, ``CopyFrom``."""
-
-    _fields: dict[str, object] = {}
-
-    def __init__(self, **kw):
-        for name, kind in self._fields.items():
-            if isinstance(kind, tuple):  # repeated message
-                value = _Repeated(kind[0])
-            elif isinstance(kind, type) and issubclass(kind, _Message):
-                value = kind()
-            else:
-                value = kind
-            object.__setattr__(self, name, value)
-        for k, v in kw.items():
-            setattr(self, k, v)
-
-    def __setattr__(self, name: str, value) -> None:
-        if name not in self._fields:
-            raise AttributeError(f"{type(self).__name__} has no field {name!r}")
-        default = self._fields[name]
-        if isinstance(default, tuple) or (
-            isinstance(default, type) and issubclass(default, _Message)
-        ):
-            raise AttributeError(
-                f"assignment not allowed to message or repeated field {name!r} (use CopyFrom / add)"
-            )
-        if isinstance(default, bool) or isinstance(default, str):
-            pass
-        elif isinstance(default, int):
-            if not isinstance(value, (int, np.integer)) or isinstance(value, bool):
-                raise TypeError(f"{type(self).__name__}.{name} is an integer field, got {value!r}")
-            value = int(value) & 0xFFFFFFFF
-        elif isinstance(default, float):
-            if not isinstance(value, (int, float, np.floating, np.integer)):
-                raise TypeError(f"{type(self).__name__}.{name} is a float field, got {value!r}")
-            value = float(np.float32(value))
-        object.__setattr__(self, name, value)
-
-    def CopyFrom(self, other: _Message) -> None:  # noqa: N802 - protobuf's name
-        for name in self._fields:
-            object.__setattr__(self, name, copy.deepcopy(getattr(other, name)))
-
-
-def _message(name: str, **fields) -> type:
-    return type(name, (_Message,), {"_fields": fields})
-
-
-# BaseCyclic
-ActuatorCommand = _message(
-    "ActuatorCommand",
-    command_id=0,
-    flags=0,
-    position=0.0,
-    velocity=0.0,
-    torque_joint=0.0,
-    current_motor=0.0,
+from jaxcomp.hardware.kortex import DEVICE_IDS, TCP_PORT, UDP_PORT
+from jaxcomp.hardware.kortex_fake_api import Transport, fake_kortex_api
+from jaxcomp.hardware.kortex_injections import LOST_KINDS, Injection, InjectionSchedule
+from jaxcomp.hardware.kortex_messages import (
+    ARM_STATES,
+    CONTROL_MODES,
+    EMERGENCY_STOP_ACTIVATED,
+    JOINT_FAULT,
+    SERVOING_MODES,
+    Feedback,
+    KClientException,
+    KServerException,
 )
-ActuatorFeedback = _message(
-    "ActuatorFeedback",
-    command_id=0,
-    status_flags=0,
-    jitter_comm=0,
-    position=0.0,
-    velocity=0.0,
-    torque=0.0,
-    current_motor=0.0,
-    voltage=0.0,
-    temperature_motor=0.0,
-    temperature_core=0.0,
-    fault_bank_a=0,
-    fault_bank_b=0,
-    warning_bank_a=0,
-    warning_bank_b=0,
+from jaxcomp.hardware.kortex_protocol import (
+    ARM_FAULT,
+    FOLLOWING_ERROR,
+    INJECTED,
+    MAX_CURRENT,
+    MAX_TORQUE,
+    SwitchRecord,
+    command_refusal,
+    diff_deg,
+    fill_actuator_feedback,
+    starts_where_seen,
+    wrap_deg,
 )
-BaseFeedback = _message(
-    "BaseFeedback",
-    active_state=0,
-    arm_voltage=0.0,
-    arm_current=0.0,
-    fault_bank_a=0,
-    fault_bank_b=0,
-    warning_bank_a=0,
-    warning_bank_b=0,
-)
-Command = _message("Command", frame_id=0, actuators=(ActuatorCommand,))
-Feedback = _message("Feedback", frame_id=0, base=BaseFeedback, actuators=(ActuatorFeedback,))
-# Base, ActuatorConfig, Session
-ServoingModeInformation = _message("ServoingModeInformation", servoing_mode=0)
-ControlModeInformation = _message("ControlModeInformation", control_mode=0)
-ArmStateInformation = _message("ArmStateInformation", active_state=0)
-CreateSessionInfo = _message(
-    "CreateSessionInfo",
-    username="",
-    password="",
-    session_inactivity_timeout=0,
-    connection_inactivity_timeout=0,
-)
+from jaxcomp.hardware.simulator import Simulator
 
-SERVOING_MODES = _Enum(
-    UNSPECIFIED_SERVOING_MODE=0, SINGLE_LEVEL_SERVOING=2, LOW_LEVEL_SERVOING=3, BYPASS_SERVOING=4
-)
-#: Common.ArmState (the arm's state in ``Feedback.base.active_state``).
-ARM_STATES = _Enum(
-    ARMSTATE_UNSPECIFIED=0,
-    ARMSTATE_BASE_INITIALIZATION=1,
-    ARMSTATE_IDLE=2,
-    ARMSTATE_INITIALIZATION=3,
-    ARMSTATE_IN_FAULT=4,
-    ARMSTATE_MAINTENANCE=5,
-    ARMSTATE_SERVOING_LOW_LEVEL=6,
-    ARMSTATE_SERVOING_READY=7,
-    ARMSTATE_SERVOING_PLAYING_SEQUENCE=8,
-    ARMSTATE_SERVOING_MANUALLY_CONTROLLED=9,
-    ARMSTATE_RESERVED=255,
-)
-#: Base.SafetyIdentifier: the bits of the arm-level fault and warning banks, bit k = 1 << k.
-_SAFETY_BITS = (
-    "FIRMWARE_UPDATE_FAILURE",
-    "EXTERNAL_COMMUNICATION_ERROR",
-    "MAXIMUM_AMBIENT_TEMPERATURE",
-    "MAXIMUM_CORE_TEMPERATURE",
-    "JOINT_FAULT",
-    "CYCLIC_DATA_JITTER",
-    "REACHED_MAXIMUM_EVENT_LOGS",
-    "NO_KINEMATICS_SUPPORT",
-    "BRAKE_REMOVAL_FAILURE",
-    "NETWORK_ERROR",
-    "UNABLE_TO_REACH_POSE",
-    "JOINT_DETECTION_ERROR",
-    "NETWORK_INITIALIZATION_ERROR",
-    "MAXIMUM_CURRENT",
-    "MAXIMUM_VOLTAGE",
-    "MINIMUM_VOLTAGE",
-    "MAXIMUM_END_EFFECTOR_TRANSLATION_VELOCITY",
-    "MAXIMUM_END_EFFECTOR_ORIENTATION_VELOCITY",
-    "MAXIMUM_END_EFFECTOR_TRANSLATION_ACCELERATION",
-    "MAXIMUM_END_EFFECTOR_ORIENTATION_ACCELERATION",
-    "MAXIMUM_END_EFFECTOR_TRANSLATION_FORCE",
-    "MAXIMUM_END_EFFECTOR_ORIENTATION_FORCE",
-    "MAXIMUM_END_EFFECTOR_PAYLOAD",
-    "EMERGENCY_STOP_ACTIVATED",
-    "EMERGENCY_LINE_ACTIVATED",
-    "INRUSH_CURRENT_LIMITER_FAULT",
-    "NVRAM_CORRUPTED",
-    "INCOMPATIBLE_FIRMWARE_VERSION",
-    "POWERON_SELF_TEST_FAILURE",
-    "DISCRETE_INPUT_STUCK_ACTIVE",
-    "ARM_INTO_ILLEGAL_POSITION",
-)
-SAFETY_IDENTIFIERS = _Enum(
-    UNSPECIFIED_BASE_SAFETY_IDENTIFIER=0, **{name: 1 << k for k, name in enumerate(_SAFETY_BITS)}
-)
-#: Arm-level fault bits the emulator raises itself or is asked to.
-JOINT_FAULT, MAXIMUM_CURRENT, EMERGENCY_STOP_ACTIVATED = (
-    SAFETY_IDENTIFIERS.Value(name)
-    for name in ("JOINT_FAULT", "MAXIMUM_CURRENT", "EMERGENCY_STOP_ACTIVATED")
-)
-CONTROL_MODES = _Enum(
-    NONE=0, POSITION=1, VELOCITY=2, TORQUE=3, CURRENT=4, CUSTOM=5, TORQUE_HIGH_VELOCITY=6
-)
+#: ActuatorConfig.ControlMode numbers the Gen3 Lite has, as the simulator's modes.
 _TO_MODE = {1: ControlMode.POSITION, 2: ControlMode.VELOCITY, 4: ControlMode.CURRENT}
 
 
-def _module(name: str, enums: dict[str, _Enum], **members) -> SimpleNamespace:
-    ns = SimpleNamespace(__name__=name, **members)
-    for enum_name, enum in enums.items():
-        setattr(ns, enum_name, enum)
-        for k, v in enum.items():
-            setattr(ns, k, v)
-    return ns
+def _check_settings(
+    sim: Simulator,
+    config_latency: float,
+    servoing_delay: float,
+    jitter: float,
+    lost_reply_rate: float,
+) -> None:
+    """ValueError unless the simulator has the Gen3 Lite's 6 joints and the times (s) are
+    >= 0 and the loss rate in [0, 1)."""
+    if sim.n != len(DEVICE_IDS):
+        raise ValueError(f"the emulated Gen3 Lite needs 6 arm joints, got {sim.n}")
+    for name, value in (
+        ("config_latency", config_latency),
+        ("servoing_delay", servoing_delay),
+        ("jitter", jitter),
+    ):
+        if not (np.isfinite(value) and value >= 0):
+            raise ValueError(f"{name} must be a number of s >= 0, got {value}")
+    if not 0 <= lost_reply_rate < 1:
+        raise ValueError(f"lost_reply_rate must be in [0, 1), got {lost_reply_rate}")
 
 
-def _wrap_deg(x):
-    """Degrees into [0, 360)."""
-    return np.mod(x, 360.0)
-
-
-def _diff_deg(a, b):
-    """a - b in (-180, 180] degrees."""
-    return (np.asarray(a) - np.asarray(b) + 180.0) % 360.0 - 180.0
-
-
-@dataclass
-class _Injection:
-    at: float
-    kind: str
-    seconds: float = 0.0
-    device: int = 0
-    bits: int = 0
-    count: int = 1
-    what: str = ""
-    done: bool = False
-
-
-#: What ``inject_lost`` loses: the reply (the command was applied), the command (it never
-#: arrived) or the send itself (a client error at once, nothing sent).
-LOST_KINDS = ("reply", "command", "client")
-
-
-@dataclass(frozen=True)
-class SwitchRecord:
-    """One ``SetControlMode`` the emulator applied.
-
-    Attributes: t (s, emulated time), device (actuator id), mode (ControlMode name),
-    low_level (in LOW_LEVEL_SERVOING), frames (cyclic commands received since the previous
-    switch or servoing change), held (the last of them started the new mode where the host
-    last saw the actuator, see the module docstring; None outside low-level servoing).
-    """
-
-    t: float
-    device: int
-    mode: str
-    low_level: bool
-    frames: int
-    held: bool | None
-
-
-# --------------------------------------------------------------------- the emulator
 class KortexEmulator:
     """A Gen3 Lite behind kortex_api's interfaces (see the module docstring).
 
@@ -370,6 +115,9 @@ class KortexEmulator:
         lost_reply_rate: probability that a ``Refresh``'s reply is lost (the command was
             applied; the caller waits its timeout).
         seed: of the jitter and the random losses.
+
+    Raises:
+        ValueError: a simulator without 6 arm joints, a negative time, a rate outside [0, 1).
     """
 
     def __init__(
@@ -386,17 +134,7 @@ class KortexEmulator:
         seed: int | None = 0,
     ):
         self.sim = sim if sim is not None else Simulator("gen3_lite")
-        if self.sim.n != len(DEVICE_IDS):
-            raise ValueError(f"the emulated Gen3 Lite needs 6 arm joints, got {self.sim.n}")
-        for name, value in (
-            ("config_latency", config_latency),
-            ("servoing_delay", servoing_delay),
-            ("jitter", jitter),
-        ):
-            if not (np.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a number of s >= 0, got {value}")
-        if not 0 <= lost_reply_rate < 1:
-            raise ValueError(f"lost_reply_rate must be in [0, 1), got {lost_reply_rate}")
+        _check_settings(self.sim, config_latency, servoing_delay, jitter, lost_reply_rate)
         self.following_error_deg = float(following_error_deg)
         self.config_latency = float(config_latency)
         self.servoing_delay = float(servoing_delay)
@@ -404,7 +142,13 @@ class KortexEmulator:
         self.lost_reply_rate = float(lost_reply_rate)
         self._rng = np.random.default_rng(seed)
         self._credentials = (username, password)
-        self.violations: list[str] = []
+        self._start_arm()
+        self._start_records()
+        self._start_exchange()
+        self.api = fake_kortex_api(self)
+
+    def _start_arm(self) -> None:
+        """The arm's own state: modes, sessions, connections, faults, frames."""
         self.servoing_mode = SERVOING_MODES.Value("SINGLE_LEVEL_SERVOING")
         self.control_modes = dict.fromkeys(DEVICE_IDS, CONTROL_MODES.Value("POSITION"))
         self.sessions_open = 0
@@ -413,12 +157,20 @@ class KortexEmulator:
         self.fault_a = dict.fromkeys(DEVICE_IDS, 0)
         self.arm_fault_a = 0
         self.last_frame_id: int | None = None
+        self._frame = 0
+
+    def _start_records(self) -> None:
+        """What the emulator records for inspection: violations, counters, switches."""
+        self.violations: list[str] = []
         self.refresh_count = 0
         self.lost = dict.fromkeys(LOST_KINDS, 0)
         self.config_timeouts = 0
         self.max_jitter_us = 0
         self.switches: list[SwitchRecord] = []
-        self._injections: list[_Injection] = []
+        self._injections = InjectionSchedule()
+
+    def _start_exchange(self) -> None:
+        """The state of the cyclic exchange with the host."""
         self._last_feedback: Feedback | None = None
         self._delivered: Feedback | None = None  # the last feedback the host received
         self._last_arrival: float | None = None
@@ -428,12 +180,11 @@ class KortexEmulator:
         self._last_command: tuple[np.ndarray, ...] | None = None  # position, velocity, current
         self._basis: Feedback | None = None  # what the host had received when it sent it
         self._targets: tuple[np.ndarray, ...] | None = None  # the sim's last targets
-        self._frame = 0
-        self.api = self._make_api()
 
     # ----------------------------------------------------------------- inspection
     @property
     def session_open(self) -> bool:
+        """True while more sessions were opened than closed."""
         return self.sessions_open > self.sessions_closed
 
     @property
@@ -443,6 +194,7 @@ class KortexEmulator:
 
     @property
     def low_level(self) -> bool:
+        """True in LOW_LEVEL_SERVOING."""
         return self.servoing_mode == SERVOING_MODES.Value("LOW_LEVEL_SERVOING")
 
     @property
@@ -456,47 +208,126 @@ class KortexEmulator:
 
     def clock(self) -> float:
         """The host's time, s: the emulated time (1 ms per Refresh, more after a stall, a
-        configuration call or a timeout) plus how late the host's next send comes (jitter)."""
+        configuration call or a timeout) plus how late the host's next send comes (jitter).
+
+        Returns:
+            The host's time, s.
+        """
         return self.sim.t + self._late
 
     # ----------------------------------------------------------------- injections
     def inject_stall(self, at: float, seconds: float) -> None:
-        """At time ``at`` s the caller stalls for ``seconds`` s (missed cycles)."""
-        self._injections.append(_Injection(at, "stall", seconds=seconds))
+        """The caller stalls (missed cycles).
+
+        Args:
+            at: s, when. seconds: s, how long.
+        """
+        self._injections.add(Injection(at, "stall", seconds=seconds))
 
     def inject_stale(self, at: float, seconds: float) -> None:
-        """From ``at`` s, for ``seconds`` s, feedback frames stop coming (old feedback)."""
-        self._injections.append(_Injection(at, "stale", seconds=seconds))
+        """Feedback frames stop coming for a while (the old feedback repeats).
+
+        Args:
+            at: s, from when. seconds: s, how long.
+        """
+        self._injections.add(Injection(at, "stale", seconds=seconds))
 
     def inject_fault(self, at: float, device: int, bits: int = INJECTED) -> None:
-        """At ``at`` s actuator ``device`` raises fault bits ``bits`` in fault_bank_a."""
-        self._injections.append(_Injection(at, "fault", device=device, bits=bits))
+        """An actuator raises fault bits in its fault_bank_a.
+
+        Args:
+            at: s, when. device: the actuator's device id. bits: the fault bits.
+        """
+        self._injections.add(Injection(at, "fault", device=device, bits=bits))
 
     def inject_arm_fault(self, at: float, bits: int = EMERGENCY_STOP_ACTIVATED) -> None:
-        """At ``at`` s the arm raises the arm-level fault bits ``bits`` (Base.SafetyIdentifier)
-        in ``base.fault_bank_a``: ARMSTATE_IN_FAULT, every actuator holds."""
-        self._injections.append(_Injection(at, "arm_fault", bits=bits))
+        """The arm raises arm-level fault bits in ``base.fault_bank_a``: ARMSTATE_IN_FAULT,
+        every actuator holds.
+
+        Args:
+            at: s, when. bits: the fault bits (Base.SafetyIdentifier).
+        """
+        self._injections.add(Injection(at, "arm_fault", bits=bits))
 
     def inject_lost(self, at: float, count: int = 1, what: str = "reply") -> None:
         """The next ``count`` ``Refresh`` calls at or after ``at`` s fail: ``what`` = "reply"
         (the command is applied, its reply lost), "command" (the command never arrives) or
         "client" (``KClientException`` at once, nothing sent). A lost reply or command costs
-        the caller its ``timeout_ms`` and raises ``TimeoutError``."""
+        the caller its ``timeout_ms`` and raises ``TimeoutError``.
+
+        Args:
+            at: s, from when. count: how many calls. what: one of ``LOST_KINDS``.
+
+        Raises:
+            ValueError: ``what`` is not one of ``LOST_KINDS``.
+        """
         if what not in LOST_KINDS:
             raise ValueError(f"what must be one of {LOST_KINDS}, got {what!r}")
-        self._injections.append(_Injection(at, "lost", count=int(count), what=what))
+        self._injections.add(Injection(at, "lost", count=int(count), what=what))
 
     def inject_config_timeout(self, at: float, count: int = 1) -> None:
         """The next ``count`` configuration calls at or after ``at`` s get no reply (not
-        applied): the caller waits its ``timeout_ms`` and gets ``TimeoutError``."""
-        self._injections.append(_Injection(at, "config_timeout", count=int(count)))
+        applied): the caller waits its ``timeout_ms`` and gets ``TimeoutError``.
+
+        Args:
+            at: s, from when. count: how many calls.
+        """
+        self._injections.add(Injection(at, "config_timeout", count=int(count)))
+
+    # ----------------------------------------------------------------- channels and sessions
+    def configuration_call(self, transport: Transport, what: str, options) -> None:
+        """A configuration call's way to the arm: over TCP port 10000 in an open session, then
+        its round trip (``config_latency`` s, or no reply).
+
+        Args:
+            transport: the caller's router's transport. what: the call, e.g. "Base.GetArmState".
+            options: the caller's ``RouterClientSendOptions`` (``timeout_ms``), or None.
+
+        Raises:
+            KServerException: not on a connected TCP transport, or outside a session.
+            TimeoutError: the reply did not come within ``timeout_ms`` (the caller waited).
+        """
+        self._need(transport, "tcp", TCP_PORT, what)
+        self._configure(what, options)
+
+    def cyclic_call(self, transport: Transport, what: str) -> None:
+        """A cyclic call's way to the arm: over UDP port 10001 in an open session.
+
+        Args:
+            transport: the caller's router's transport. what: the call, e.g. "BaseCyclic.Refresh".
+
+        Raises:
+            KServerException: not on a connected UDP transport, or outside a session.
+        """
+        self._need(transport, "udp", UDP_PORT, what)
+
+    def create_session(self, transport: Transport, info) -> None:
+        """Open a session (``SessionManager.CreateSession``).
+
+        Args:
+            transport: the session's transport. info: a ``CreateSessionInfo``.
+
+        Raises:
+            KServerException: the transport is not connected, or the credentials are wrong.
+        """
+        if not transport.is_connected:
+            raise self._refuse("CreateSession on a transport that is not connected")
+        if (info.username, info.password) != self._credentials:
+            raise KServerException("wrong username or password")
+        self.sessions_open += 1
+
+    def close_session(self) -> None:
+        """Close a session (a violation while in LOW_LEVEL_SERVOING)."""
+        if self.low_level:
+            self.violations.append("session closed while in LOW_LEVEL_SERVOING")
+        self.sessions_closed += 1
 
     # ----------------------------------------------------------------- protocol helpers
     def _refuse(self, message: str) -> KServerException:
         self.violations.append(message)
         return KServerException(message)
 
-    def _need(self, transport, kind: str, port: int, what: str) -> None:
+    def _need(self, transport: Transport, kind: str, port: int, what: str) -> None:
         if transport.kind != kind or transport.port != port or not transport.is_connected:
             raise self._refuse(f"{what} needs a {kind.upper()} connection on port {port}")
         if not self.session_open:
@@ -521,15 +352,9 @@ class KortexEmulator:
     def _timeout_s(options) -> float:
         return (10000 if options is None else options.timeout_ms) / 1000.0
 
-    def _take(self, kind: str) -> _Injection | None:
-        """A due count injection of ``kind`` (one of its counts used up), or None."""
-        t = self.sim.t
-        for inj in self._injections:
-            if inj.kind == kind and not inj.done and t >= inj.at - 1e-9:
-                inj.count -= 1
-                inj.done = inj.count <= 0
-                return inj
-        return None
+    def _take(self, kind: str) -> Injection | None:
+        """A due counted injection of ``kind`` (one of its counts used up), or None."""
+        return self._injections.take(kind, self.sim.t)
 
     def _configure(self, what: str, options) -> None:
         """A configuration call's round trip: ``config_latency`` s, or a timeout."""
@@ -540,8 +365,16 @@ class KortexEmulator:
             raise TimeoutError(f"{what}: no reply within {1e3 * timeout:.0f} ms")
         self._wait(self.config_latency)
 
-    # ----------------------------------------------------------------- services
+    # ----------------------------------------------------------------- configuration services
     def set_servoing_mode(self, info) -> None:
+        """``Base.SetServoingMode``: SINGLE_LEVEL_SERVOING (2) or LOW_LEVEL_SERVOING (3).
+
+        Args:
+            info: a ``ServoingModeInformation``.
+
+        Raises:
+            KServerException: another servoing mode.
+        """
         mode = info.servoing_mode
         if mode not in (2, 3):
             raise self._refuse(f"servoing mode {mode} is not supported by the emulator")
@@ -565,25 +398,44 @@ class KortexEmulator:
             self.control_modes[d] = CONTROL_MODES.Value("POSITION")
         self.sim.hold()
 
-    def _held(self, i: int, device: int, mode: int) -> bool:
-        """A hold frame came since the last switch and its command for actuator index ``i``
-        starts ``mode`` where the host last saw the actuator: CURRENT at the measured current,
-        VELOCITY at 0, POSITION (from another mode) at the measured position."""
-        if self._frames_since_switch < 1 or self._last_command is None or self._basis is None:
-            return False
-        position, velocity, current = self._last_command
-        seen = self._basis.actuators[i]
-        if mode == CONTROL_MODES.Value("CURRENT"):
-            return bool(current[i] == seen.current_motor)
-        if mode == CONTROL_MODES.Value("VELOCITY"):
-            return bool(velocity[i] == 0.0)
-        if self.control_modes[device] == mode:  # POSITION already: the frame holds its target
-            return True
-        return bool(position[i] == seen.position)
+    def control_mode_of(self, device_id: int) -> int:
+        """``ActuatorConfig.GetControlMode``.
+
+        Args:
+            device_id: the actuator's device id.
+
+        Returns:
+            Its control mode (ActuatorConfig.ControlMode number).
+
+        Raises:
+            KServerException: no actuator has that id.
+        """
+        self._device(device_id)
+        return self.control_modes[device_id]
 
     def set_control_mode(self, info, device_id: int) -> None:
+        """``ActuatorConfig.SetControlMode`` of one actuator, recorded in ``switches``.
+
+        Args:
+            info: a ``ControlModeInformation``. device_id: the actuator's device id.
+
+        Raises:
+            KServerException: no such actuator, a mode the Gen3 Lite lacks, or CURRENT or
+                VELOCITY outside LOW_LEVEL_SERVOING.
+        """
         j = self._device(device_id)
         mode = info.control_mode
+        self._check_mode(device_id, mode)
+        self._record_switch(j, device_id, mode)
+        self._frames_since_switch = 0
+        self.control_modes[device_id] = mode
+        if not self._in_fault():
+            self.sim.set_modes({j: _TO_MODE[mode]})
+            if self._targets is not None:  # the actuator goes on with the last command
+                self.sim.set_targets(*self._targets)
+
+    def _check_mode(self, device_id: int, mode: int) -> None:
+        """Refuse a mode the Gen3 Lite lacks, or CURRENT or VELOCITY before low-level servoing."""
         if mode not in _TO_MODE:
             raise self._refuse(
                 f"control mode {CONTROL_MODES.Name(mode)} is not available on the Gen3 Lite"
@@ -593,11 +445,15 @@ class KortexEmulator:
                 f"{CONTROL_MODES.Name(mode)} mode for actuator {device_id} needs "
                 "LOW_LEVEL_SERVOING first"
             )
-        held = self._held(j, device_id, mode) if self.low_level else None
+
+    def _record_switch(self, i: int, device: int, mode: int) -> None:
+        """Log the switch (``SwitchRecord``); one to CURRENT or VELOCITY without a hold frame
+        is a violation."""
+        held = self._held(i, device, mode) if self.low_level else None
         self.switches.append(
             SwitchRecord(
                 self.sim.t,
-                device_id,
+                device,
                 CONTROL_MODES.Name(mode),
                 self.low_level,
                 self._frames_since_switch,
@@ -606,39 +462,74 @@ class KortexEmulator:
         )
         if held is False and mode != CONTROL_MODES.Value("POSITION"):
             self.violations.append(
-                f"SetControlMode({CONTROL_MODES.Name(mode)}) for actuator {device_id} without a "
+                f"SetControlMode({CONTROL_MODES.Name(mode)}) for actuator {device} without a "
                 "hold frame built from the feedback before it"
             )
-        self._frames_since_switch = 0
-        self.control_modes[device_id] = mode
-        if not self._in_fault():
-            self.sim.set_modes({j: _TO_MODE[mode]})
-            if self._targets is not None:  # the actuator goes on with the last command
-                self.sim.set_targets(*self._targets)
+
+    def _held(self, i: int, device: int, mode: int) -> bool:
+        """A hold frame came since the last switch and starts actuator index ``i`` in
+        ``mode`` where the host last saw it (``starts_where_seen``)."""
+        if self._frames_since_switch < 1 or self._last_command is None or self._basis is None:
+            return False
+        seen = self._basis.actuators[i]
+        return starts_where_seen(mode, self.control_modes[device], self._last_command, i, seen)
 
     def clear_faults(self) -> None:
+        """``Base.ClearFaults``: every actuator and arm fault cleared, the modes restored."""
         self.fault_a = dict.fromkeys(DEVICE_IDS, 0)
         self.arm_fault_a = 0
         self.sim.clear_faults()
         self.sim.set_modes({j: _TO_MODE[self.control_modes[d]] for j, d in enumerate(DEVICE_IDS)})
 
-    def close_session(self) -> None:
-        if self.low_level:
-            self.violations.append("session closed while in LOW_LEVEL_SERVOING")
-        self.sessions_closed += 1
+    # ----------------------------------------------------------------- the cyclic exchange
+    def refresh(self, command, options=None) -> Feedback:
+        """One cyclic exchange (``BaseCyclic.Refresh``): apply the command for 1 ms, return
+        the feedback (or lose it: see ``inject_lost``).
 
-    def _due(self, kind: str):
-        t = self.sim.t
-        for inj in self._injections:
-            if inj.kind == kind and not inj.done and t >= inj.at:
-                if kind == "stale":
-                    if t < inj.at + inj.seconds:
-                        return inj
-                    inj.done = True
-                    continue
-                inj.done = True
-                return inj
-        return None
+        Args:
+            command: a ``Command`` (positions deg, velocities deg/s, currents A).
+            options: the caller's ``RouterClientSendOptions`` (``timeout_ms``), or None.
+
+        Returns:
+            The ``Feedback`` after the step.
+
+        Raises:
+            KServerException: outside LOW_LEVEL_SERVOING, or a command the arm rejects.
+            KClientException: an injected client error (nothing sent).
+            TimeoutError: a lost command or reply (the caller waited its timeout).
+        """
+        if not self.low_level:
+            raise self._refuse("Refresh with a command outside LOW_LEVEL_SERVOING")
+        loss = self._loss()
+        if loss == "client":
+            self.lost["client"] += 1
+            raise KClientException("Couldn't send message frame (injected)")
+        timeout = self._timeout_s(options)
+        if loss == "command":
+            raise self._lost("command", timeout, timeout)
+        self._check_command(command)
+        jitter = self._receive(command.frame_id)
+        self._apply(command)
+        self._run_cycle()
+        fb = self._reply(command, jitter)
+        if loss == "reply":
+            raise self._lost("reply", timeout - CONTROL_PERIOD, timeout)
+        self._draw_late()
+        self._delivered = fb
+        return fb
+
+    def refresh_feedback(self) -> Feedback:
+        """``BaseCyclic.RefreshFeedback``: the current feedback, no command.
+
+        Returns:
+            The ``Feedback`` (what the host now has received).
+        """
+        self._delivered = fb = self.feedback()
+        return fb
+
+    def _due(self, kind: str) -> Injection | None:
+        """A due one-shot injection of ``kind`` (stale feedback: while it lasts), or None."""
+        return self._injections.due(kind, self.sim.t)
 
     def _loss(self) -> str | None:
         """How this Refresh fails: an injected loss, a random lost reply, or None."""
@@ -649,37 +540,22 @@ class KortexEmulator:
             return "reply"
         return None
 
-    def refresh(self, command, options=None) -> Feedback:
-        """One cyclic exchange: apply the command for 1 ms, return the feedback (or lose it:
-        see ``inject_lost``)."""
-        if not self.low_level:
-            raise self._refuse("Refresh with a command outside LOW_LEVEL_SERVOING")
-        loss = self._loss()
-        if loss == "client":
-            self.lost["client"] += 1
-            raise KClientException("Couldn't send message frame (injected)")
-        timeout = self._timeout_s(options)
-        if loss == "command":
-            self.lost["command"] += 1
-            self._wait(timeout)
-            self._draw_late()
-            raise TimeoutError(f"Refresh: no reply within {1e3 * timeout:.0f} ms (command lost)")
-        fid = command.frame_id
-        if len(command.actuators) != len(DEVICE_IDS):
-            raise self._refuse(
-                f"command for {len(command.actuators)} actuators, the arm has {len(DEVICE_IDS)}"
-            )
-        if self.last_frame_id is not None and not 0 < (fid - self.last_frame_id) % 65536 < 32768:
-            raise self._refuse(f"frame_id {fid} did not advance past {self.last_frame_id}")
-        for i, a in enumerate(command.actuators):
-            if a.command_id & 0xFFFF != fid:
-                raise self._refuse(
-                    f"actuator {DEVICE_IDS[i]}: command_id {a.command_id} does not match "
-                    f"frame_id {fid}"
-                )
-            if not a.flags & 1:
-                raise self._refuse(f"actuator {DEVICE_IDS[i]}: servoing flag (flags=1) not set")
-        self.last_frame_id = fid
+    def _lost(self, what: str, wait: float, timeout: float) -> TimeoutError:
+        """A lost command or reply, counted: the caller waits ``wait`` s of its ``timeout``."""
+        self.lost[what] += 1
+        self._wait(wait)
+        self._draw_late()
+        return TimeoutError(f"Refresh: no reply within {1e3 * timeout:.0f} ms ({what} lost)")
+
+    def _check_command(self, command) -> None:
+        """Refuse a command the arm rejects (``command_refusal``)."""
+        refusal = command_refusal(command, self.last_frame_id, DEVICE_IDS)
+        if refusal is not None:
+            raise self._refuse(refusal)
+
+    def _receive(self, frame_id: int) -> int:
+        """Count an accepted command; its arrival's jitter (us) against the last one's."""
+        self.last_frame_id = frame_id
         self.refresh_count += 1
         self._frames_since_switch += 1
         arrival = self.sim.t + self._late
@@ -687,7 +563,10 @@ class KortexEmulator:
         jitter = 0 if last is None else int(abs(arrival - last - CONTROL_PERIOD) * 1e6)
         self._last_arrival = arrival
         self.max_jitter_us = max(self.max_jitter_us, jitter)
-        self._apply(command)
+        return jitter
+
+    def _run_cycle(self) -> None:
+        """The arm's 1 ms (more after an injected stall), then the faults that came in it."""
         steps = 1
         stall = self._due("stall")
         if stall is not None:
@@ -702,18 +581,13 @@ class KortexEmulator:
             self.arm_fault_a |= arm_fault.bits
             self.sim.hold()
         self._sim_faults()
+
+    def _reply(self, command, jitter: int) -> Feedback:
+        """The reply: the old feedback again while stale (injected), else a fresh one."""
         if self._due("stale") is not None and self._last_feedback is not None:
-            fb = copy.deepcopy(self._last_feedback)
-        else:
-            fb = self.feedback(fid, jitter, command)
-            self._last_feedback = fb
-        if loss == "reply":
-            self.lost["reply"] += 1
-            self._wait(timeout - CONTROL_PERIOD)
-            self._draw_late()
-            raise TimeoutError(f"Refresh: no reply within {1e3 * timeout:.0f} ms (reply lost)")
-        self._draw_late()
-        self._delivered = fb
+            return copy.deepcopy(self._last_feedback)
+        fb = self.feedback(command.frame_id, jitter, command)
+        self._last_feedback = fb
         return fb
 
     def _draw_late(self) -> None:
@@ -721,30 +595,43 @@ class KortexEmulator:
             self._late = float(self._rng.uniform(0.0, self.jitter))
 
     def _apply(self, command) -> None:
-        sim = self.sim
+        """The command's targets to the simulator, unless a following error or a current
+        beyond ``MAX_CURRENT`` faults."""
         cmd_pos = np.array([a.position for a in command.actuators])
         velocity_deg = np.array([a.velocity for a in command.actuators])
         current = np.array([a.current_motor for a in command.actuators])
         self._last_command = (cmd_pos, velocity_deg, current)
         self._basis = self._delivered
-        q_deg = np.rad2deg(sim.data.qpos[sim._qadr])
-        err = _diff_deg(cmd_pos, q_deg)
+        q_deg = np.rad2deg(self.sim.data.qpos[self.sim.arm_qposadr])
+        err = diff_deg(cmd_pos, q_deg)
+        self._following_faults(err)
+        if self._in_fault():
+            return
+        self._current_faults(current)
+        if not self._in_fault():
+            position = np.deg2rad(q_deg + err)
+            velocity = np.deg2rad(velocity_deg)
+            self._targets = (position, velocity, current)
+            self.sim.set_targets(position, velocity, current)
+
+    def _following_faults(self, err: np.ndarray) -> None:
+        """FOLLOWING_ERROR on each actuator commanded further than ``following_error_deg``
+        (``err`` (6,) deg, commanded - measured)."""
         for i in np.flatnonzero(np.abs(err) > self.following_error_deg):
             d = DEVICE_IDS[i]
             if not self.fault_a[d] & FOLLOWING_ERROR:
                 self.fault_a[d] |= FOLLOWING_ERROR
-                sim.fault(f"actuator {d}: following error {err[i]:.1f} deg", int(i))
-        if self._in_fault():
-            return
-        position = np.deg2rad(q_deg + err)
-        velocity = np.deg2rad(velocity_deg)
-        over = np.abs(current) > 11.0
-        for i in np.flatnonzero(over & sim._is_cur):
+                self.sim.fault(f"actuator {d}: following error {err[i]:.1f} deg", int(i))
+
+    def _current_faults(self, current: np.ndarray) -> None:
+        """MAX_TORQUE on each CURRENT-mode actuator commanded beyond ``MAX_CURRENT``
+        (``current`` (6,) A)."""
+        in_current = np.array([m is ControlMode.CURRENT for m in self.sim.modes])
+        for i in np.flatnonzero((np.abs(current) > MAX_CURRENT) & in_current):
             self.fault_a[DEVICE_IDS[i]] |= MAX_TORQUE
-            sim.fault(f"actuator {DEVICE_IDS[i]}: current {current[i]:.2f} A beyond 11 A", int(i))
-        if not self._in_fault():
-            self._targets = (position, velocity, current)
-            sim.set_targets(position, velocity, current)
+            self.sim.fault(
+                f"actuator {DEVICE_IDS[i]}: current {current[i]:.2f} A beyond 11 A", int(i)
+            )
 
     def _sim_faults(self) -> None:
         if not self.sim.fault_joints:
@@ -756,180 +643,32 @@ class KortexEmulator:
         self.sim.hold()
 
     def feedback(self, frame_id: int | None = None, jitter: int = 0, command=None) -> Feedback:
-        """The current Feedback message (what RefreshFeedback returns)."""
-        sim = self.sim
+        """The current Feedback message (what RefreshFeedback returns).
+
+        Args:
+            frame_id: its frame id (None: the next of the emulator's own).
+            jitter: us, each actuator's ``jitter_comm``.
+            command: the ``Command`` it answers (its actuators' ``command_id`` echoed), or None.
+
+        Returns:
+            The ``Feedback``: arm state and fault banks, each actuator's position deg in
+            [0, 360), velocity deg/s, current A and torque N m.
+        """
         self._frame = (self._frame + 1) % 65536 if frame_id is None else frame_id
         fb = Feedback(frame_id=self._frame)
         fb.base.active_state = self.arm_state
         joint_fault = JOINT_FAULT if any(self.fault_a.values()) else 0
         fb.base.fault_bank_a = self.arm_fault_a | joint_fault
         fb.base.arm_voltage = 24.0
-        q = _wrap_deg(np.rad2deg(sim.data.qpos[sim._qadr]))
-        dq = np.rad2deg(sim.data.qvel[sim._dadr])
-        torque = sim.applied_torque
-        for i, d in enumerate(DEVICE_IDS):
-            a = fb.actuators.add()
-            a.position = q[i]
-            a.velocity = dq[i]
-            a.current_motor = sim.current[i]
-            a.torque = torque[i]
-            a.voltage = 24.0
-            a.temperature_motor = a.temperature_core = 35.0
-            a.fault_bank_a = self.fault_a[d]
-            a.jitter_comm = jitter
-            if command is not None:
-                a.command_id = command.actuators[i].command_id
+        self._actuator_feedback(fb, jitter, command)
         return fb
 
-    # ----------------------------------------------------------------- the fake kortex_api
-    def _make_api(self) -> SimpleNamespace:
-        emu = self
-
-        class _Transport:
-            kind = ""
-
-            def __init__(self):
-                self.port = None
-                self.is_connected = False
-
-            def connect(self, ip: str, port: int) -> None:
-                self.ip, self.port, self.is_connected = ip, port, True
-                emu.connected.add(self.kind)
-
-            def disconnect(self) -> None:
-                self.is_connected = False
-                emu.connected.discard(self.kind)
-
-        class TCPTransport(_Transport):
-            kind = "tcp"
-
-        class UDPTransport(_Transport):
-            kind = "udp"
-
-        class RouterClient:
-            def __init__(self, transport, error_callback=None):
-                self.transport = transport
-                self.error_callback = error_callback
-                self.active = True
-
-            def SetActivationStatus(self, active: bool) -> None:  # noqa: N802
-                self.active = active
-
-        class RouterClientSendOptions:
-            """kortex_api's send options: these three fields and no other."""
-
-            __slots__ = ("andForget", "delay_ms", "timeout_ms")
-
-            def __init__(self):
-                self.andForget = False
-                self.delay_ms = 0
-                self.timeout_ms = 10000
-
-            def getTimeoutInSecond(self) -> float:  # noqa: N802
-                return self.timeout_ms / 1000
-
-        class SessionManager:
-            def __init__(self, router):
-                self.router = router
-                self.open = False
-
-            def CreateSession(self, info) -> None:  # noqa: N802
-                if not self.router.transport.is_connected:
-                    raise emu._refuse("CreateSession on a transport that is not connected")
-                if (info.username, info.password) != emu._credentials:
-                    raise KServerException("wrong username or password")
-                self.open = True
-                emu.sessions_open += 1
-
-            def CloseSession(self) -> None:  # noqa: N802
-                if self.open:
-                    self.open = False
-                    emu.close_session()
-
-        class BaseClient:
-            def __init__(self, router):
-                self.router = router
-
-            def _call(self, what: str, options) -> None:
-                emu._need(self.router.transport, "tcp", TCP_PORT, f"Base.{what}")
-                emu._configure(f"Base.{what}", options)
-
-            def SetServoingMode(self, info, deviceId=0, options=None):  # noqa: N802, N803
-                self._call("SetServoingMode", options)
-                emu.set_servoing_mode(info)
-
-            def GetServoingMode(self, deviceId=0, options=None):  # noqa: N802, N803
-                self._call("GetServoingMode", options)
-                return ServoingModeInformation(servoing_mode=emu.servoing_mode)
-
-            def ClearFaults(self, deviceId=0, options=None) -> None:  # noqa: N802, N803
-                self._call("ClearFaults", options)
-                emu.clear_faults()
-
-            def GetArmState(self, deviceId=0, options=None):  # noqa: N802, N803
-                self._call("GetArmState", options)
-                return ArmStateInformation(active_state=emu.arm_state)
-
-        class BaseCyclicClient:
-            def __init__(self, router):
-                self.router = router
-
-            def Refresh(self, command, deviceId=0, options=None):  # noqa: N802, N803
-                emu._need(self.router.transport, "udp", UDP_PORT, "BaseCyclic.Refresh")
-                return emu.refresh(command, options)
-
-            def RefreshFeedback(self, deviceId=0, options=None):  # noqa: N802, N803
-                emu._need(self.router.transport, "udp", UDP_PORT, "BaseCyclic.RefreshFeedback")
-                emu._delivered = fb = emu.feedback()
-                return fb
-
-        class ActuatorConfigClient:
-            def __init__(self, router):
-                self.router = router
-
-            def _call(self, what: str, options) -> None:
-                emu._need(self.router.transport, "tcp", TCP_PORT, f"ActuatorConfig.{what}")
-                emu._configure(f"ActuatorConfig.{what}", options)
-
-            def SetControlMode(self, info, deviceId=0, options=None):  # noqa: N802, N803
-                self._call("SetControlMode", options)
-                emu.set_control_mode(info, deviceId)
-
-            def GetControlMode(self, deviceId=0, options=None):  # noqa: N802, N803
-                self._call("GetControlMode", options)
-                emu._device(deviceId)
-                return ControlModeInformation(control_mode=emu.control_modes[deviceId])
-
-        return SimpleNamespace(
-            TCPTransport=TCPTransport,
-            UDPTransport=UDPTransport,
-            RouterClient=RouterClient,
-            RouterClientSendOptions=RouterClientSendOptions,
-            SessionManager=SessionManager,
-            BaseClient=BaseClient,
-            BaseCyclicClient=BaseCyclicClient,
-            ActuatorConfigClient=ActuatorConfigClient,
-            KServerException=KServerException,
-            KClientException=KClientException,
-            Session_pb2=_module("Session_pb2", {}, CreateSessionInfo=CreateSessionInfo),
-            Common_pb2=_module("Common_pb2", {"ArmState": ARM_STATES}),
-            Base_pb2=_module(
-                "Base_pb2",
-                {"ServoingMode": SERVOING_MODES, "SafetyIdentifier": SAFETY_IDENTIFIERS},
-                ServoingModeInformation=ServoingModeInformation,
-                ArmStateInformation=ArmStateInformation,
-            ),
-            BaseCyclic_pb2=_module(
-                "BaseCyclic_pb2",
-                {},
-                Command=Command,
-                Feedback=Feedback,
-                ActuatorCommand=ActuatorCommand,
-                ActuatorFeedback=ActuatorFeedback,
-            ),
-            ActuatorConfig_pb2=_module(
-                "ActuatorConfig_pb2",
-                {"ControlMode": CONTROL_MODES},
-                ControlModeInformation=ControlModeInformation,
-            ),
+    def _actuator_feedback(self, fb: Feedback, jitter: int, command) -> None:
+        """Each actuator's feedback, added to ``fb``."""
+        sim = self.sim
+        q = wrap_deg(np.rad2deg(sim.data.qpos[sim.arm_qposadr]))
+        dq = np.rad2deg(sim.data.qvel[sim.arm_dofadr])
+        torque = sim.applied_torque
+        fill_actuator_feedback(
+            fb, DEVICE_IDS, q, dq, sim.current, torque, self.fault_a, jitter, command
         )

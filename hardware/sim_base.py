@@ -16,7 +16,7 @@ from jaxcomp.hardware.interface import Base, BaseState
 from jaxcomp.hardware.mecanum import MecanumGeometry
 
 if TYPE_CHECKING:
-    from jaxcomp.hardware.sim_arm import Simulator
+    from jaxcomp.hardware.simulator import Simulator
 
 
 class SimBase(Base):

@@ -46,7 +46,9 @@ from jaxcomp.robot_params import (
 )
 
 #: Ratios (A/(N m)) and friction losses (A) identified on the paper's real arm, joints 0..5
-#: (the Gen3 Lite models state them as ``jaxcomp_sim_ratio`` and ``jaxcomp_sim_friction``).
+#: (the values of Figs. 11-12's calibration, the authors' published code; the Gen3 Lite models
+#: state them as ``jaxcomp_sim_ratio`` and ``jaxcomp_sim_friction``, the simulator's default
+#: truth). The one place of these figures in the code.
 PAPER_RATIO = (1.0282, 0.3074, 1.0282, 1.9074, 2.0373, 1.9724)
 PAPER_FRICTION = (0.5318, 1.4776, 0.6695, 0.3013, 0.3732, 0.5923)
 #: A, standard deviation of the measured current of a joint whose current limit is 11 A.
@@ -76,9 +78,19 @@ def _stated(robot: Robot, name: str, positive: bool) -> np.ndarray | None:
 
 
 def stated_truth(robot: Robot) -> tuple[np.ndarray, np.ndarray] | None:
-    """The simulator's true ratios (n,) A/(N m) and friction losses (n,) A that the model
-    states (custom numerics ``jaxcomp_sim_ratio`` and ``jaxcomp_sim_friction``), or None when
-    it states neither; ``ModelError`` when it states one alone."""
+    """The simulator's true ratios and friction losses that the model states (custom
+    numerics ``jaxcomp_sim_ratio`` and ``jaxcomp_sim_friction``).
+
+    Args:
+        robot: the nominal model.
+
+    Returns:
+        (ratio (n,) A/(N m), friction (n,) A), or None when the model states neither.
+
+    Raises:
+        ModelError: it states one alone, or a value that is not finite and > 0 (ratio) or
+            >= 0 (friction).
+    """
     ratio = _stated(robot, "jaxcomp_sim_ratio", positive=True)
     friction = _stated(robot, "jaxcomp_sim_friction", positive=False)
     if (ratio is None) != (friction is None):
@@ -90,21 +102,43 @@ def stated_truth(robot: Robot) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def current_scale(robot: Robot) -> np.ndarray:
-    """(n,) each current-controlled joint's current limit (``current_limits``) over
-    ``DEFAULT_CURRENT_LIMIT``: the scale of its drawn friction loss and current noise."""
+    """The scale of each joint's drawn friction loss and current noise.
+
+    Args:
+        robot: the nominal model.
+
+    Returns:
+        (n,) each current-controlled joint's current limit (``current_limits``) over
+        ``DEFAULT_CURRENT_LIMIT``.
+    """
     return current_limits(robot) / DEFAULT_CURRENT_LIMIT
 
 
 def friction_loss_range(robot: Robot) -> np.ndarray:
-    """(n, 2) A: the range of drawn friction losses, ``FRICTION_LOSS`` times
-    ``current_scale``."""
+    """The range of drawn friction losses.
+
+    Args:
+        robot: the nominal model.
+
+    Returns:
+        (n, 2) A, [low, high] per joint: ``FRICTION_LOSS`` times ``current_scale``.
+    """
     return current_scale(robot)[:, None] * np.asarray(FRICTION_LOSS)
 
 
 def model_current_noise(robot: Robot) -> float:
-    """A, the standard deviation of the simulated current noise: the model's
-    ``jaxcomp_sim_current_noise``, else ``DEFAULT_CURRENT_NOISE`` times the mean
-    ``current_scale`` over the joints."""
+    """The standard deviation of the simulated current noise.
+
+    Args:
+        robot: the nominal model.
+
+    Returns:
+        A: the model's ``jaxcomp_sim_current_noise``, else ``DEFAULT_CURRENT_NOISE`` times
+        the mean ``current_scale`` over the joints.
+
+    Raises:
+        ModelError: a stated noise that is not one finite value >= 0.
+    """
     stated = robot.custom_numeric("jaxcomp_sim_current_noise")
     if stated is None:
         return DEFAULT_CURRENT_NOISE * float(np.mean(current_scale(robot)))
@@ -117,8 +151,15 @@ def model_current_noise(robot: Robot) -> float:
 
 
 def truth_centre(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
-    """Ratios (n,) A/(N m) and friction losses (n,) A at the centre of the model's truths: the
-    stated ones (``stated_truth``), else the middle of the drawn ranges."""
+    """The centre of the model's truths: the stated ones (``stated_truth``), else the middle
+    of the drawn ranges.
+
+    Args:
+        robot: the nominal model.
+
+    Returns:
+        (ratio (n,) A/(N m), friction (n,) A).
+    """
     stated = stated_truth(robot)
     if stated is not None:
         return stated
@@ -127,9 +168,16 @@ def truth_centre(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
 
 
 def friction_loss_torque(friction: np.ndarray, ratio: np.ndarray, floor: float = 0.0) -> np.ndarray:
-    """MuJoCo's ``dof_frictionloss`` (N m) of joints whose Coulomb friction loss is
-    ``friction`` A at current/torque ratio ``ratio`` A/(N m): friction / ratio, at least
-    ``floor`` N m (elementwise; any shapes that broadcast)."""
+    """MuJoCo's ``dof_frictionloss`` of joints with a Coulomb friction loss in current.
+
+    Args:
+        friction: friction losses, A (any shape that broadcasts with ``ratio``).
+        ratio: current/torque ratios, A/(N m).
+        floor: N m, the smallest torque returned.
+
+    Returns:
+        friction / ratio, N m, at least ``floor`` (elementwise).
+    """
     return np.maximum(np.asarray(friction, dtype=float) / np.asarray(ratio, dtype=float), floor)
 
 
@@ -160,10 +208,12 @@ class TrueRobot:
 
     @property
     def ratio(self) -> np.ndarray:
+        """(n,) A/(N m), the true current/torque ratios."""
         return self.params.ratio
 
     @property
     def friction(self) -> np.ndarray:
+        """(n,) A, the true friction losses."""
         return self.params.friction
 
     @property
@@ -184,9 +234,18 @@ class TrueRobot:
 
         Ratios and friction losses: the model's stated ones (``stated_truth``), else the
         nominal ratio times U(``RATIO_SPREAD``) and U(``FRICTION_LOSS``) A times
-        ``current_scale`` (``friction_loss_range``). COM offsets: U(-com_offset,
-        com_offset) m per axis on every link an arm joint moves. ``current_noise`` A (None:
-        ``model_current_noise``).
+        ``current_scale`` (``friction_loss_range``).
+
+        Args:
+            robot: the nominal model.
+            seed: of the draw (and of the noise).
+            com_offset: m, COM offsets are U(-com_offset, com_offset) per axis (link frame)
+                on every link an arm joint moves.
+            current_noise: A, standard deviation (None: ``model_current_noise``).
+            viscous: (n,) N m s/rad, or None.
+
+        Returns:
+            The ``TrueRobot``.
         """
         rng = np.random.default_rng(seed)
         arm = arm_joint_indices(robot)
@@ -224,18 +283,36 @@ class TrueRobot:
         }
 
     def to_dict(self) -> dict:
-        """The truth file's contents (``save``): its params' JSON and the noise and viscous
-        keys."""
+        """The truth file's contents (``save``).
+
+        Returns:
+            Its params' JSON dict and the noise and viscous keys.
+        """
         return self.params.to_dict() | self._extra()
 
     def save(self, path: str | Path) -> Path:
-        """Write the truth as a params JSON file (atomic) with its noise and viscous keys."""
+        """Write the truth as a params JSON file (atomic) with its noise and viscous keys.
+
+        Args:
+            path: the file.
+
+        Returns:
+            The path written.
+        """
         return self.params.save(path, extra=self._extra())
 
     @classmethod
     def load(cls, path: str | Path, robot: Robot | None = None) -> TrueRobot:
-        """Read a truth (or any params file: noise then defaults to ``robot``'s
-        ``model_current_noise``, without a robot to ``DEFAULT_CURRENT_NOISE``)."""
+        """Read a truth, or any params file.
+
+        Args:
+            path: the file.
+            robot: the model it is for (checked by ``RobotParams.load``); a file without a
+                noise gets its ``model_current_noise`` (``DEFAULT_CURRENT_NOISE`` without one).
+
+        Returns:
+            The ``TrueRobot``.
+        """
         params = RobotParams.load(path, robot)
         data = json.loads(Path(path).read_text())
         noise = DEFAULT_CURRENT_NOISE if robot is None else model_current_noise(robot)
@@ -248,11 +325,16 @@ class TrueRobot:
 
     # ----------------------------------------------------------------- the true MjModel
     def apply(self, model: mujoco.MjModel, robot: Robot, friction_timeconst: float) -> None:
-        """Write the truth into ``model`` (a compiled copy of ``robot``'s model), in place.
+        """Write the truth into a compiled model, in place.
 
         body_ipos += com_offset (both in the body frame); dof_frictionloss = friction / ratio
-        (N m, ``friction_loss_torque``) with a stiff solver reference (``friction_timeconst``
-        s) so that the Coulomb friction is delivered in full; dof_damping = viscous.
+        (N m, ``friction_loss_torque``) with a stiff solver reference so that the Coulomb
+        friction is delivered in full; dof_damping = viscous.
+
+        Args:
+            model: a compiled copy of ``robot``'s model (changed).
+            robot: the nominal model the truth is for.
+            friction_timeconst: s, the friction loss's solver time constant.
         """
         self.params.check(robot)
         for link, off in self.params.com_offset.items():

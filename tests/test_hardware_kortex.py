@@ -14,14 +14,10 @@ from jaxcomp.errors import InputError
 from jaxcomp.hardware import ArmCommand, ControlMode, HardwareFault, KortexArm, Simulator
 from jaxcomp.hardware.interface import Base, BaseState
 from jaxcomp.hardware.kortex import DEVICE_IDS
-from jaxcomp.hardware.kortex_emulator import (
-    FOLLOWING_ERROR,
-    JOINT_FAULT,
-    LOST_KINDS,
-    MAXIMUM_CURRENT,
-    KortexEmulator,
-    KServerException,
-)
+from jaxcomp.hardware.kortex_emulator import KortexEmulator
+from jaxcomp.hardware.kortex_injections import LOST_KINDS
+from jaxcomp.hardware.kortex_messages import JOINT_FAULT, MAXIMUM_CURRENT, KServerException
+from jaxcomp.hardware.kortex_protocol import FOLLOWING_ERROR
 from jaxcomp.hardware.mecanum import TwistLimits
 from jaxcomp.robot import load_robot
 from jaxcomp.robot_params import RobotParams

@@ -1,6 +1,6 @@
 """The simulated arm on MJX: thousands of true robots driven by one plan or policy at once.
 
-``MjxSimulator`` is the CPU ``Simulator`` (hardware/sim_arm.py) of an arm-only model, batched
+``MjxSimulator`` is the CPU ``Simulator`` (hardware/simulator.py) of an arm-only model, batched
 over worlds with ``jax.vmap``: the same MuJoCo model (actuators, 1 ms implicitfast step, stiff
 friction-loss solver reference), the same servo ``tau = clip(kp (q_ref - q) + kv (0 - dq),
 effort)`` with the same per-joint gains (computed as the CPU simulator does, from each world's
@@ -47,8 +47,16 @@ from jaxcomp.hardware.mjx.gains import servo_gains
 from jaxcomp.hardware.mjx.mesh import batch_mesh
 from jaxcomp.hardware.mjx.model import LS_ITERATIONS, PAYLOAD_BODY, build_model
 from jaxcomp.hardware.mjx.reference import Move, reference_trajectory
-from jaxcomp.hardware.mjx.runner import AGREEMENT, PLAN, RESTART, SETTLE, MjxRecording, Reduction
-from jaxcomp.hardware.mjx.simulator import SETTLE_STEPS, MjxSimulator
+from jaxcomp.hardware.mjx.runner import (
+    AGREEMENT,
+    PLAN,
+    RESTART,
+    SETTLE,
+    SETTLE_STEPS,
+    MjxRecording,
+    Reduction,
+)
+from jaxcomp.hardware.mjx.simulator import MjxSimulator
 from jaxcomp.hardware.mjx.truth import BatchTruth, true_inertial_params
 
 __all__ = [

@@ -27,7 +27,7 @@ import numpy as np
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.interaction import Push
-from jaxcomp.hardware.mjx.chunks import PyTree, chunk_length, over_worlds, scan_decimated
+from jaxcomp.hardware.mjx.chunks import PyTree, over_worlds, scan_decimated
 from jaxcomp.hardware.mjx.faults import (
     FAULT_EFFORT,
     FAULT_LIMIT,
@@ -35,8 +35,9 @@ from jaxcomp.hardware.mjx.faults import (
     FAULT_REFUSED,
     FAULT_STOPPED,
 )
-from jaxcomp.hardware.mjx.mesh import SHARED, WORLDS, devices, placement, world_padding
+from jaxcomp.hardware.mjx.mesh import SHARED, WORLDS, placement, world_padding
 from jaxcomp.hardware.mjx.model import WORLD_MODEL_FIELDS
+from jaxcomp.hardware.mjx.runner import SETTLE_STEPS
 from jaxcomp.hardware.mjx.step import implicitfast_step
 from jaxcomp.hardware.mjx.truth import BatchTruth
 
@@ -107,7 +108,17 @@ class PushSchedule(NamedTuple):
 
     @classmethod
     def from_pushes(cls, pushes: Sequence[Sequence[Push]]) -> PushSchedule:
-        """One list of ``Push`` per world (padded with zero forces to the longest list)."""
+        """A schedule of pushes, world by world.
+
+        Args:
+            pushes: one list of ``Push`` (force only) per world.
+
+        Returns:
+            The schedule, padded with zero forces to the longest list.
+
+        Raises:
+            InputError: no world, or a push with a torque.
+        """
         if not pushes:
             raise InputError("pushes is empty: give one list of Push per world")
         width = max(1, max(len(p) for p in pushes))
@@ -121,7 +132,17 @@ class PushSchedule(NamedTuple):
         return cls(start, dur, force)
 
     def checked(self, worlds: int) -> PushSchedule:
-        """Float arrays of the right shapes, finite, start >= 0, duration > 0 (InputError)."""
+        """The schedule checked for ``worlds`` worlds.
+
+        Args:
+            worlds: W.
+
+        Returns:
+            The schedule as float arrays: start, duration (W, P) s, force (W, P, 3) N.
+
+        Raises:
+            InputError: other shapes, a value not finite, start < 0 or duration <= 0.
+        """
         start, dur, force = (np.asarray(a, dtype=float) for a in self)
         if start.ndim != 2 or start.shape[0] != worlds or dur.shape != start.shape:
             raise InputError(
@@ -175,17 +196,112 @@ def run(
     state: PyTree | None,
     steps: int,
     *,
-    reference: np.ndarray | None,
-    pushes: PushSchedule | None,
-    initial_pose: str | Sequence[float] | np.ndarray | None,
-    settle_steps: int,
-    seed: int,
-    every: int,
-    progress: Callable[[int, int], None] | None,
+    reference: np.ndarray | None = None,
+    pushes: PushSchedule | None = None,
+    initial_pose: str | Sequence[float] | np.ndarray | None = None,
+    settle_steps: int = SETTLE_STEPS,
+    seed: int = 0,
+    every: int = 0,
+    progress: Callable[[int, int], None] | None = None,
     world_ids: Sequence[int] | np.ndarray | None = None,
 ) -> ClosedLoopResult:
-    """``MjxSimulator.run_closed_loop`` (see there): settle, then the closed loop, chunk by
-    chunk."""
+    """Drive every world in CURRENT mode with ``policy`` for ``steps`` steps of 1 ms
+    (``MjxSimulator.run_closed_loop``): settle, then the closed loop, chunk by chunk.
+
+    Each world settles at ``initial_pose`` under the position servo for ``settle_steps``
+    steps, as in ``MjxSimulator.run``; from t = 0 the policy maps each sample k
+    (``Observation`` at t = k CONTROL_PERIOD, k = 0 .. steps) to the motor currents (n,) A of
+    step k (the last sample's are not applied): torque = current / true ratio, clamped at the
+    effort limit, as the CPU Simulator's CURRENT mode (the sample before a step, the command
+    after it: ``control.loop.run_control`` in lock step, with ``steps`` cycles). The measured
+    current is ratio x applied torque + noise; world w's noise at sample k comes from
+    ``fold_in(fold_in(PRNGKey(seed), id_w), k)``, ``id_w`` = ``world_ids[w]``: with global ids
+    it does not depend on how the worlds are chunked.
+
+    A world goes to POSITION mode, holding its measured position, for the rest of the run
+    (``fault_step``, ``fault_code``) when, as on the CPU Simulator and the ``Arm``, a joint
+    reaches its limit, a torque exceeds the effort limit or a joint ``overspeed`` (the sample
+    after the step shows the fault), or at a sample whose command is refused (NaN/inf or
+    beyond ``current_limit`` A, never sent) or where the policy returns ``stop``; the policy
+    state stays as after the last sample whose command was sent (``run_control``: a tripped
+    sample is not counted).
+
+    Args:
+        sim: the simulator (``MjxSimulator``; this is its method ``run_closed_loop``).
+        truth: the worlds' true robots (W worlds).
+        policy: a ``Policy(init, step)`` of pure JAX functions of one world, vmapped over
+            worlds here.
+        params: the policy's parameters, a pytree of (W, ...) arrays.
+        state: the initial policy state, a pytree of (W, ...) arrays, or None when
+            ``policy.init`` makes it from sample 0.
+        steps: steps of the closed loop (>= 1).
+        reference: (steps + 1, m), shared by the worlds: row k goes to the policy with sample
+            k (None: an empty row).
+        pushes: forces on the end effectors (world frame).
+        initial_pose: a pose name, (n,) or (W, n) rad; None: ``Robot.idle_pose``.
+        settle_steps: steps of the settling before t = 0 (>= 1: sample 0 is the settled state).
+        seed: of the current noise.
+        every: records every ``every``-th step (0: only the final state).
+        progress: ``progress(steps_done, steps_total)`` after each chunk.
+        world_ids: (W,) ints >= 0, the worlds' ids of the noise (default 0 .. W - 1).
+
+    Returns:
+        The ``ClosedLoopResult``.
+
+    Raises:
+        InputError: an argument out of its range, shape or kind.
+    """
+    steps, settle_steps, every = _checked_counts(steps, settle_steps, every, policy, state)
+    w = truth.worlds
+    ref = _checked_reference(reference, steps)
+    if pushes is None:
+        pushes = PushSchedule(np.zeros((w, 1)), np.ones((w, 1)), np.zeros((w, 1, 3)))
+    pushes = pushes.checked(w)
+    params = _per_world(params, w, "params")
+    clock = sim.run_clock()
+    loop = _prepare(sim, truth, policy, params, state, ref, pushes, initial_pose, seed, world_ids)
+    chunk = _chunk(sim, len(loop.q0), every, max(steps, settle_steps))
+    loop = _compile(sim, loop, policy, every, chunk, ref)
+    clock.mark()
+    carry = _settle(loop, ref, settle_steps)
+    q_start = np.asarray(carry[0])[:w].astype(float)
+    clock.mark()
+    carry, out = _close_loop(sim, loop, ref, carry, w, every, progress)
+    final = jax.tree_util.tree_map(lambda a: np.asarray(a)[:w], carry)
+    clock.finish()
+    n_rec = -(-steps // every) if every else 0
+    return ClosedLoopResult(
+        (np.arange(n_rec) * every + 1) * CONTROL_PERIOD if every else np.zeros(0),
+        *(out.get(k) for k in _RECORDED),
+        state=final[5],
+        q_start=q_start,
+        fault_step=final[7].astype(int),
+        fault_code=final[8].astype(int),
+        every=every,
+    )
+
+
+#: What the closed loop records of each step (``ClosedLoopResult``).
+_RECORDED = ("q", "dq", "current", "command")
+
+
+class _Loop(NamedTuple):
+    """A closed-loop run's compiled chunk function and its inputs (Wp worlds, padded)."""
+
+    fn: Callable | None
+    fields: dict  # per world, placed on the device(s)
+    params: PyTree  # per world, placed
+    carry: tuple  # the initial carry, placed
+    q0: np.ndarray  # (Wp, n) rad, the initial poses
+    chunk: int
+    put: Callable
+    put_shared: Callable
+
+
+def _checked_counts(
+    steps: int, settle_steps: int, every: int, policy: Policy, state: PyTree | None
+) -> tuple[int, int, int]:
+    """The step counts as ints, the policy and its initial state checked (InputError)."""
     steps, settle_steps, every = int(steps), int(settle_steps), int(every)
     if steps < 1:
         raise InputError(f"steps must be >= 1, got {steps}")
@@ -208,24 +324,40 @@ def run(
             if state is not None
             else "policy.init is None: give the initial policy state (state)"
         )
-    w, n, dtype = truth.worlds, sim.n, sim.dtype
+    return steps, settle_steps, every
+
+
+def _checked_reference(reference: np.ndarray | None, steps: int) -> np.ndarray:
+    """The reference (steps + 1, m), finite (an empty row per sample without one)."""
     ref = np.zeros((steps + 1, 0)) if reference is None else np.asarray(reference, float)
     if ref.ndim != 2 or ref.shape[0] != steps + 1 or not np.isfinite(ref).all():
         raise InputError(
             f"reference must be a finite (steps + 1 = {steps + 1}, m) array, got shape {ref.shape}"
         )
-    if pushes is None:
-        pushes = PushSchedule(np.zeros((w, 1)), np.ones((w, 1)), np.zeros((w, 1, 3)))
-    pushes = pushes.checked(w)
-    params = _per_world(params, w, "params")
-    clock = sim._clock()
-    q0 = sim._initial_pose(initial_pose, w)
+    return ref
+
+
+def _prepare(
+    sim: MjxSimulator,
+    truth: BatchTruth,
+    policy: Policy,
+    params: PyTree,
+    state: PyTree | None,
+    ref: np.ndarray,
+    pushes: PushSchedule,
+    initial_pose: str | Sequence[float] | np.ndarray | None,
+    seed: int,
+    world_ids: Sequence[int] | np.ndarray | None,
+) -> _Loop:
+    """The worlds' fields, params, poses and initial policy state, padded (not yet placed)."""
+    w, n, dtype = truth.worlds, sim.n, sim.dtype
+    q0 = sim.initial_poses(initial_pose, w)
     fields = sim.world_fields(truth)
     fields.update(
         push_start=pushes.start.astype(dtype),
         push_duration=pushes.duration.astype(dtype),
         push_force=pushes.force.astype(dtype),
-        key=sim._world_keys(seed, _world_ids(world_ids, w)),
+        key=sim.world_keys(seed, _world_ids(world_ids, w)),
     )
     pad = world_padding(sim.mesh, w)
     wp = len(pad)
@@ -236,27 +368,32 @@ def run(
         pstate = padded(_per_world(state, w, "state"))
     else:  # zeros of init's structure until sample 0 replaces them
         obs = Observation(np.zeros(wp), zeros, zeros, zeros, np.zeros((wp, ref.shape[1])))
-        with sim._precision():
+        with sim.precision():
             shapes = jax.eval_shape(jax.vmap(policy.init), params, obs)
         pstate = jax.tree_util.tree_map(lambda sd: np.zeros(sd.shape, sd.dtype), shapes)
-    if every:
-        chunk = chunk_length(
-            sim.chunk_steps,
-            sim.backend,
-            wp // devices(sim.mesh),
-            n,
-            dtype.itemsize,
-            every,
-            max(steps, settle_steps),
-        )
-    else:
-        chunk = sim.chunk_steps or (100 if sim.backend == "cpu" else 1000)
-        chunk = min(int(chunk), max(steps, settle_steps))
-    put, put_shared = placement(sim.mesh)
-    fields, params = put(fields), put(params)
-    no_fault = np.full(wp, -1, np.int32)
     carry = (q0, zeros, zeros, np.zeros((wp, 3), dtype), zeros, pstate, q0)
-    carry = put(carry + (no_fault, np.zeros(wp, np.int32)))
+    put, put_shared = placement(sim.mesh)
+    return _Loop(None, fields, params, carry, q0, 0, put, put_shared)
+
+
+def _chunk(sim: MjxSimulator, wp: int, every: int, steps: int) -> int:
+    """Steps per compiled call: as ``MjxSimulator.chunk_length`` when recording, else
+    ``chunk_steps`` (default 100 on the CPU, else 1000), at most ``steps``."""
+    if every:
+        return sim.chunk_length(wp, every, steps)
+    chunk = sim.chunk_steps or (100 if sim.backend == "cpu" else 1000)
+    return min(int(chunk), steps)
+
+
+def _compile(
+    sim: MjxSimulator, loop: _Loop, policy: Policy, every: int, chunk: int, ref: np.ndarray
+) -> _Loop:
+    """The loop's inputs placed on the device(s) and its compiled chunk function of ``chunk``
+    steps."""
+    put, wp = loop.put, len(loop.q0)
+    fields, params = put(loop.fields), put(loop.params)
+    no_fault = np.full(wp, -1, np.int32)
+    carry = put(loop.carry + (no_fault, np.zeros(wp, np.int32)))
     # the compiled step sees (chunk, m) rows of the reference, never its length; the limits
     # it closes over are part of the key
     current_limit = tuple(np.asarray(sim.current_limit, float).tolist())
@@ -270,21 +407,46 @@ def run(
         sim.mesh,
         _signature(fields, params, carry, ref[0]),
     )
-    fn = sim._compiled_function(
+    fn = sim.compiled_function(
         key, lambda: _build(sim, policy, every, sim.overspeed, np.array(current_limit))
     )
-    clock.mark()
+    return loop._replace(fn=fn, fields=fields, params=params, carry=carry, chunk=chunk)
 
-    def rows(first: int) -> jax.Array:  # reference rows of samples first .. first+chunk-1
-        return put_shared(ref[np.clip(np.arange(first, first + chunk), 0, steps)])
 
+def _rows(loop: _Loop, ref: np.ndarray, first: int) -> jax.Array:
+    """The reference rows of samples first .. first + chunk - 1 (clipped to the plan), placed."""
+    steps = ref.shape[0] - 1
+    return loop.put_shared(ref[np.clip(np.arange(first, first + loop.chunk), 0, steps)])
+
+
+def _settle(loop: _Loop, ref: np.ndarray, settle_steps: int) -> tuple:
+    """The carry after the settling (steps -settle_steps .. -1, held in POSITION mode)."""
+    carry, chunk = loop.carry, loop.chunk
     for s in range(-settle_steps, 0, chunk):
-        carry, _, _ = fn(fields, params, carry, rows(s + 1), np.int32(s), np.int32(min(chunk, -s)))
-    q_start = np.asarray(carry[0])[:w].astype(float)
-    clock.mark()
+        carry, _, _ = loop.fn(
+            loop.fields,
+            loop.params,
+            carry,
+            _rows(loop, ref, s + 1),
+            np.int32(s),
+            np.int32(min(chunk, -s)),
+        )
+    return carry
+
+
+def _close_loop(
+    sim: MjxSimulator,
+    loop: _Loop,
+    ref: np.ndarray,
+    carry: tuple,
+    w: int,
+    every: int,
+    progress: Callable[[int, int], None] | None,
+) -> tuple[tuple, dict[str, np.ndarray]]:
+    """The closed loop from t = 0, chunk by chunk: the final carry and the recorded samples."""
+    steps, n, chunk = ref.shape[0] - 1, sim.n, loop.chunk
     n_rec = -(-steps // every) if every else 0
-    names = ("q", "dq", "current", "command")
-    out = {k: np.zeros((w, n_rec, n), dtype) for k in names} if every else {}
+    out = {k: np.zeros((w, n_rec, n), sim.dtype) for k in _RECORDED} if every else {}
 
     def collect(pending: tuple) -> None:
         """Copy a chunk's samples to the host and report progress."""
@@ -300,23 +462,15 @@ def run(
     pending: tuple | None = None
     for s in range(0, steps, chunk):
         k = min(chunk, steps - s)
-        carry, rec, faulted = fn(fields, params, carry, rows(s + 1), np.int32(s), np.int32(k))
+        carry, rec, faulted = loop.fn(
+            loop.fields, loop.params, carry, _rows(loop, ref, s + 1), np.int32(s), np.int32(k)
+        )
         if pending is not None:  # host work overlaps the chunk just dispatched
             collect(pending)
         pending = (s, k, rec, faulted)
     if pending is not None:
         collect(pending)
-    final = jax.tree_util.tree_map(lambda a: np.asarray(a)[:w], carry)
-    clock.finish()
-    return ClosedLoopResult(
-        (np.arange(n_rec) * every + 1) * CONTROL_PERIOD if every else np.zeros(0),
-        *(out.get(k) for k in names),
-        state=final[5],
-        q_start=q_start,
-        fault_step=final[7].astype(int),
-        fault_code=final[8].astype(int),
-        every=every,
-    )
+    return carry, out
 
 
 def _build(
@@ -332,12 +486,12 @@ def _build(
     Carry per world: qpos, qvel, qacc_warmstart, lever of the push (site - body COM, m, from
     the previous step's kinematics, as the CPU Simulator uses it), command, policy state, held
     position, fault step, fault code."""
-    mx, d0, dtype, n = sim._mx, sim._d0, sim.dtype, sim.n
-    lo = jnp.asarray(sim._hard[:, 0], dtype)
-    hi = jnp.asarray(sim._hard[:, 1], dtype)
-    torque_limit = jnp.asarray(sim._torque_limit, dtype)
+    mx, d0, dtype, n = sim.mjx_model, sim.mjx_data, sim.dtype, sim.n
+    lo = jnp.asarray(sim.joint_limits[:, 0], dtype)
+    hi = jnp.asarray(sim.joint_limits[:, 1], dtype)
+    torque_limit = jnp.asarray(sim.torque_limit, dtype)
     current_limit = jnp.asarray(current_limit, dtype)
-    site, body, nbody = sim._ee_site, sim._ee_body, sim.model.nbody
+    site, body, nbody = sim.ee_site, sim.ee_body, sim.model.nbody
     step_fn = implicitfast_step(sim.model, dtype)
     init, act = policy
 
@@ -413,7 +567,7 @@ def _build(
 
     # fields, params, carry, the samples and the fault counts (one per device): per world
     specs = (WORLDS, WORLDS, WORLDS, SHARED, SHARED, SHARED)
-    return sim._ahead_of_time(chunk_fn, 2, specs, WORLDS)
+    return sim.ahead_of_time(chunk_fn, 2, specs, WORLDS)
 
 
 def _per_world(tree: PyTree, worlds: int, name: str) -> PyTree:

@@ -13,7 +13,7 @@ import mujoco
 import numpy as np
 
 from jaxcomp.errors import ModelError
-from jaxcomp.hardware.sim_arm import simulation_spec
+from jaxcomp.hardware.sim_model import simulation_spec
 from jaxcomp.robot import Robot
 from jaxcomp.robot_params import BASE_JOINTS, arm_joint_indices
 

@@ -26,7 +26,7 @@ from jax.sharding import PartitionSpec as P
 
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
-from jaxcomp.hardware.mjx.chunks import chunk_length, over_worlds, scan_decimated
+from jaxcomp.hardware.mjx.chunks import over_worlds, scan_decimated
 from jaxcomp.hardware.mjx.mesh import SHARED, WORLDS, device_rows, devices, placement, world_padding
 from jaxcomp.hardware.mjx.model import WORLD_MODEL_FIELDS
 from jaxcomp.hardware.mjx.step import implicitfast_step
@@ -43,6 +43,9 @@ AGREEMENT = {"q": 2e-8, "dq": 1e-6, "current": 5e-6}
 #: The recorded worlds of a run's compiled program come in multiples of this (at least one
 #: multiple, also when none is recorded).
 RECORD_BUCKET = 4
+
+#: Steps of the settling at the initial pose before t = 0 (the CPU Simulator's).
+SETTLE_STEPS = 500
 
 #: ``run``'s phase of a step, per reference group: the plan (faults count), settling (the
 #: reference held, faults not counted), and a restart: the world set at rest at the
@@ -100,29 +103,148 @@ def run(
     sim: MjxSimulator,
     truth: BatchTruth,
     q_ref: np.ndarray,
-    initial_pose: str | Sequence[float] | np.ndarray | None,
+    initial_pose: str | Sequence[float] | np.ndarray | None = None,
     *,
-    settle_steps: int,
-    seed: int,
-    every: int,
-    progress: Callable[[int, int], None] | None,
-    on_chunk: Callable[[int, MjxRecording], None] | None,
-    keep: bool,
-    group: Sequence[int] | np.ndarray | None,
+    settle_steps: int = SETTLE_STEPS,
+    seed: int = 0,
+    every: int = 1,
+    progress: Callable[[int, int], None] | None = None,
+    on_chunk: Callable[[int, MjxRecording], None] | None = None,
+    keep: bool = True,
+    group: Sequence[int] | np.ndarray | None = None,
     reduce: Reduction | None = None,
     record: Sequence[int] | np.ndarray | None = None,
     world_ids: Sequence[int] | np.ndarray | None = None,
     phase: np.ndarray | None = None,
     noise_step: np.ndarray | None = None,
 ) -> MjxRecording:
-    """``MjxSimulator.run`` (see there): settle, then the plan, chunk by chunk."""
+    """Drive every world through the position targets ``q_ref`` at 1 kHz
+    (``MjxSimulator.run``): settle, then the plan, chunk by chunk.
+
+    Each world starts at ``initial_pose``, is servoed there for ``settle_steps`` steps (as a
+    fresh CPU ``Simulator``), then follows ``q_ref``: step i commands q_ref[i] and records the
+    state after it. The current noise of world w at step i is ``noise_w N(0, 1)`` from
+    ``fold_in(fold_in(PRNGKey(seed), id_w), c)``, ``id_w`` = ``world_ids[w]`` and c =
+    ``noise_step[i, group[w]]``, so it depends neither on chunking nor, with global ids, on how
+    worlds are batched (nor, with the steps of one plan as ``noise_step``, on where a job runs).
+
+    Args:
+        sim: the simulator (``MjxSimulator``; this is its method ``run``).
+        truth: the worlds' true robots (W worlds).
+        q_ref: (T, n) rad, the joint-position targets of every step; or (T, G, n): G
+            references side by side, world w following reference ``group[w]`` (e.g. the
+            sweeps of one plan as parallel segments). Within the joint limits.
+        initial_pose: a pose name, (n,) or (W, n) rad; None: ``Robot.idle_pose``.
+        settle_steps: steps of the settling before t = 0 (>= 0).
+        seed: of the current noise.
+        every: records every ``every``-th sample (0, every, ...), >= 1.
+        progress: ``progress(steps_done, steps_total)`` after each chunk.
+        on_chunk: ``on_chunk(first_sample, recording_of_the_chunk)`` streams the samples.
+        keep: False returns q, dq, current as None (bounded host memory; without
+            ``on_chunk`` no sample leaves the device).
+        group: (W,) ints in [0, G), each world's reference (default 0).
+        reduce: a ``Reduction`` of every world's samples on the device, its final carry
+            returned as ``reduced``.
+        record: only these worlds' samples leave the device (default all; q, dq, current then
+            have M = len(record) rows).
+        world_ids: (W,) ints >= 0, the worlds' ids of the noise (default 0 .. W - 1).
+        phase: (T, G) of ``PLAN`` (default), ``SETTLE`` (faults not counted) or ``RESTART``
+            (the world set at rest at its reference, then settling): several jobs one after
+            another in one world.
+        noise_step: (T, G) ints, each step's noise index (default the step i).
+
+    Returns:
+        The ``MjxRecording``.
+
+    Raises:
+        InputError: an argument out of its range or shape, or a target beyond a joint limit.
+    """
+    plan = _checked_plan(sim, truth.worlds, q_ref, settle_steps, every, group, phase, noise_step)
+    clock = sim.run_clock()
+    job = _prepare(sim, truth, plan, initial_pose, seed, world_ids, record, keep, on_chunk, reduce)
+    clock.mark()
+    carry = _settle(sim, job, plan, reduce)
+    q_start = np.asarray(carry[0])[: truth.worlds].astype(float)
+    clock.mark()
+    carry, out = _follow(sim, job, plan, carry, keep, on_chunk, progress)
+    clock.finish()
+    w, n_rec = truth.worlds, plan.noise_step.shape[0]
+    t = (np.arange(n_rec) * plan.every + 1) * CONTROL_PERIOD
+    return MjxRecording(
+        t,
+        out.get("q"),
+        out.get("dq"),
+        out.get("current"),
+        q_start,
+        np.asarray(carry[3])[:w].astype(int),
+        plan.every,
+        None if reduce is None else jax.tree.map(lambda a: a[:w], carry[4]),
+    )
+
+
+class _Plan(NamedTuple):
+    """A run's checked plan (host arrays)."""
+
+    q_ref: np.ndarray  # (T, G, n) rad
+    group: np.ndarray  # (W,) each world's reference
+    phase: np.ndarray  # (T, G) int8: PLAN, SETTLE or RESTART
+    noise_step: np.ndarray  # (R, G) int32, the recorded samples' noise steps
+    every: int
+    settle_steps: int
+
+
+class _Job(NamedTuple):
+    """A run's compiled chunk function and what it is fed (Wp worlds, padded to the mesh)."""
+
+    fn: Callable
+    fields: dict  # per world, placed on the device(s)
+    q0: np.ndarray  # (Wp, n) rad, host: the initial poses
+    rows: np.ndarray  # the recorded worlds (M,), host indices
+    where: np.ndarray  # their rows in a chunk's recorded output
+    rows_dev: Any  # each device's recorded worlds, placed
+    chunk: int
+    xs: Any  # the reduction's rows (R, G, ...), host
+    put: Callable
+    put_shared: Callable
+
+
+def _checked_plan(
+    sim: MjxSimulator,
+    w: int,
+    q_ref: np.ndarray,
+    settle_steps: int,
+    every: int,
+    group: Sequence[int] | np.ndarray | None,
+    phase: np.ndarray | None,
+    noise_step: np.ndarray | None,
+) -> _Plan:
+    """The run's plan, checked (InputError), with its defaults."""
     every = int(every)
     if every < 1:
         raise InputError(f"every must be >= 1, got {every}")
     settle_steps = int(settle_steps)
     if settle_steps < 0:
         raise InputError("settle_steps must be >= 0")
-    hard = sim._hard
+    q_ref = _checked_reference(sim, q_ref)
+    t_total, groups = q_ref.shape[0], q_ref.shape[1]
+    group = np.zeros(w, np.int32) if group is None else np.asarray(group)
+    if group.shape != (w,) or not ((group >= 0) & (group < groups)).all():
+        raise InputError(f"group must be ({w},) ints in [0, {groups})")
+    phase = np.zeros((t_total, groups), np.int8) if phase is None else np.asarray(phase, np.int8)
+    if phase.shape != (t_total, groups) or not np.isin(phase, (PLAN, SETTLE, RESTART)).all():
+        raise InputError(f"phase must be ({t_total}, {groups}) of PLAN, SETTLE or RESTART")
+    if noise_step is None:
+        noise_step = np.broadcast_to(np.arange(t_total)[:, None], (t_total, groups))
+    noise_step = np.asarray(noise_step)
+    if noise_step.shape != (t_total, groups) or not np.issubdtype(noise_step.dtype, np.integer):
+        raise InputError(f"noise_step must be ({t_total}, {groups}) step indices")
+    noise_step = noise_step[::every].astype(np.int32)  # the recorded samples' (n_rec, G)
+    return _Plan(q_ref, group, phase, noise_step, every, settle_steps)
+
+
+def _checked_reference(sim: MjxSimulator, q_ref: np.ndarray) -> np.ndarray:
+    """``q_ref`` as (T, G, n) rad, finite and within the joint limits (InputError)."""
+    hard = sim.joint_limits
     q_ref = np.asarray(q_ref, dtype=float)
     if q_ref.ndim == 2:
         q_ref = q_ref[:, None]
@@ -136,22 +258,24 @@ def run(
             f"q_ref[{where}] = {q_ref[i, g, j]:.4g} rad is beyond joint {j}'s limits "
             f"[{hard[j, 0]:.4g}, {hard[j, 1]:.4g}] rad"
         )
-    w, n, t_total, groups = truth.worlds, sim.n, q_ref.shape[0], q_ref.shape[1]
-    group = np.zeros(w, np.int32) if group is None else np.asarray(group)
-    if group.shape != (w,) or not ((group >= 0) & (group < groups)).all():
-        raise InputError(f"group must be ({w},) ints in [0, {groups})")
-    phase = np.zeros((t_total, groups), np.int8) if phase is None else np.asarray(phase, np.int8)
-    if phase.shape != (t_total, groups) or not np.isin(phase, (PLAN, SETTLE, RESTART)).all():
-        raise InputError(f"phase must be ({t_total}, {groups}) of PLAN, SETTLE or RESTART")
-    if noise_step is None:
-        noise_step = np.broadcast_to(np.arange(t_total)[:, None], (t_total, groups))
-    noise_step = np.asarray(noise_step)
-    if noise_step.shape != (t_total, groups) or not np.issubdtype(noise_step.dtype, np.integer):
-        raise InputError(f"noise_step must be ({t_total}, {groups}) step indices")
-    noise_step = noise_step[::every].astype(np.int32)  # the recorded samples' (n_rec, G)
-    clock = sim._clock()
-    dtype = sim.dtype
-    q0 = sim._initial_pose(initial_pose, w)
+    return q_ref
+
+
+def _prepare(
+    sim: MjxSimulator,
+    truth: BatchTruth,
+    plan: _Plan,
+    initial_pose: str | Sequence[float] | np.ndarray | None,
+    seed: int,
+    world_ids: Sequence[int] | np.ndarray | None,
+    record: Sequence[int] | np.ndarray | None,
+    keep: bool,
+    on_chunk: Callable | None,
+    reduce: Reduction | None,
+) -> _Job:
+    """The worlds' fields and poses, the recorded rows and the compiled chunk function."""
+    w, (t_total, groups) = truth.worlds, plan.q_ref.shape[:2]
+    q0 = sim.initial_poses(initial_pose, w)
     fields = sim.world_fields(truth)
     pad = world_padding(sim.mesh, w)
     wp = len(pad)
@@ -164,21 +288,13 @@ def run(
         raise InputError(f"record must hold world indices in [0, {w})")
     if not keep and on_chunk is None:  # nobody reads the samples: none leave the device
         rows = rows[:0]
-    fields["key"] = sim._world_keys(seed, ids)[pad]
-    fields["group"] = group.astype(np.int32)[pad]
+    fields["key"] = sim.world_keys(seed, ids)[pad]
+    fields["group"] = plan.group.astype(np.int32)[pad]
     q0 = q0[pad]
-    chunk = chunk_length(
-        sim.chunk_steps,
-        sim.backend,
-        wp // devices(sim.mesh),
-        n,
-        dtype.itemsize,
-        every,
-        max(t_total, settle_steps, 1),
-    )
+    every = plan.every
+    chunk = sim.chunk_length(wp, every, max(t_total, plan.settle_steps, 1))
     limits = (sim.following_error, sim.overspeed)
-    n_rec = -(-t_total // every)
-    xs = _reduction_rows(reduce, n_rec, groups)
+    xs = _reduction_rows(reduce, plan.noise_step.shape[0], groups)
     shape = lambda a: (np.shape(a), np.result_type(a).str)  # noqa: E731
     row = lambda a: (np.shape(a)[1:], np.result_type(a).str)  # noqa: E731  any plan length
     red_key = (
@@ -191,49 +307,80 @@ def run(
     local_rows, where = device_rows(rows, wp, devices(sim.mesh), RECORD_BUCKET)
     key = ("open", wp, chunk, every, groups, limits, sim.mesh, red_key, local_rows.size)
     step = None if reduce is None else reduce.step
-    fn = sim._compiled_function(key, lambda: _build(sim, chunk, every, *limits, step))
+    fn = sim.compiled_function(key, lambda: _build(sim, chunk, every, *limits, step))
     put, put_shared = placement(sim.mesh)
     fields = put(fields)
     rows_dev = put(local_rows.astype(np.int32))
-    clock.mark()
+    return _Job(fn, fields, q0, rows, where, rows_dev, chunk, xs, put, put_shared)
+
+
+def _rows_of(job: _Job, plan: _Plan, s: int, a: np.ndarray) -> Any:
+    """The rows of per-sample array ``a`` (R, ...) of the chunk from step ``s``, placed (the
+    last row repeated past the end)."""
+    per = job.chunk // plan.every
+    return job.put_shared(a[np.minimum(s // plan.every + np.arange(per), len(a) - 1)])
+
+
+def _xs_of(job: _Job, plan: _Plan, s: int) -> Any:
+    """The reduction's rows of the chunk from step ``s``, placed."""
+    return jax.tree.map(lambda a: _rows_of(job, plan, s, a), job.xs)
+
+
+def _settle(sim: MjxSimulator, job: _Job, plan: _Plan, reduce: Reduction | None) -> tuple:
+    """The carry after the settling: each world servoed to its initial pose (target q0 = 0
+    reference + per-world offset q0), its fault step reset."""
+    wp, n, dtype, every, chunk = len(job.q0), sim.n, sim.dtype, plan.every, job.chunk
+    put, put_shared = job.put, job.put_shared
+    groups, settle_steps = plan.q_ref.shape[1], plan.settle_steps
     zeros = np.zeros((wp, n), dtype)
     acc = () if reduce is None else _broadcast(reduce.init, wp, sim.mesh, put_shared)
-    carry = (*put((q0.astype(dtype), zeros, zeros, np.full(wp, -1, np.int32))), acc)
+    carry = (*put((job.q0.astype(dtype), zeros, zeros, np.full(wp, -1, np.int32))), acc)
     per = chunk // every
-    rows_of = lambda s, a: put_shared(a[np.minimum(s // every + np.arange(per), len(a) - 1)])  # noqa: E731
-    xs_of = lambda s: jax.tree.map(lambda a: rows_of(s, a), xs)  # noqa: E731  chunk from step s
     settle_noise = lambda s: put_shared(  # noqa: E731  settling: its own (negative) steps
         np.repeat((s + np.arange(per) * every)[:, None], groups, 1).astype(np.int32)
     )
-    # settle: servo to q0 (target q0 = 0 reference + per-world offset q0)
-    settle_fields = dict(fields, offset=put(q0.astype(dtype)))
+    settle_fields = dict(job.fields, offset=put(job.q0.astype(dtype)))
     zero_ref = put_shared(np.zeros((chunk, groups, n), dtype))
     settling = put_shared(np.full((chunk, groups), SETTLE, np.int8))
     for s in range(0, settle_steps, chunk):
-        carry, _ = fn(
+        carry, _ = job.fn(
             settle_fields,
             carry,
             zero_ref,
             settling,
-            xs_of(0),
+            _xs_of(job, plan, 0),
             settle_noise(s - settle_steps),
-            rows_dev,
+            job.rows_dev,
             np.int32(s - settle_steps),
             np.int32(min(chunk, settle_steps - s)),
         )
-    carry = (*carry[:3], carry[3] * 0 - 1, carry[4])
-    q_start = np.asarray(carry[0])[:w].astype(float)
-    clock.mark()
-    plan_fields = dict(fields, offset=put(zeros))
+    return (*carry[:3], carry[3] * 0 - 1, carry[4])
+
+
+def _follow(
+    sim: MjxSimulator,
+    job: _Job,
+    plan: _Plan,
+    carry: tuple,
+    keep: bool,
+    on_chunk: Callable | None,
+    progress: Callable | None,
+) -> tuple[tuple, dict[str, np.ndarray]]:
+    """The plan, chunk by chunk: the final carry and the kept samples (q, dq, current)."""
+    n, dtype, every, chunk = sim.n, sim.dtype, plan.every, job.chunk
+    (t_total, groups), n_rec = plan.q_ref.shape[:2], plan.noise_step.shape[0]
+    plan_fields = dict(job.fields, offset=job.put(np.zeros((len(job.q0), n), dtype)))
     out = (
-        {k: np.zeros((rows.size, n_rec, n), dtype) for k in ("q", "dq", "current")} if keep else {}
+        {k: np.zeros((job.rows.size, n_rec, n), dtype) for k in ("q", "dq", "current")}
+        if keep
+        else {}
     )
 
     def consume(pending: tuple) -> None:
         """Copy a chunk's samples to the host, stream them and report progress."""
         s, k, rec = pending
         nr = -(-k // every)  # samples of the chunk's valid steps
-        q, dq, cur = (np.asarray(a)[where, :nr] for a in rec)
+        q, dq, cur = (np.asarray(a)[job.where, :nr] for a in rec)
         first = s // every
         if out:
             out["q"][:, first : first + nr] = q
@@ -251,15 +398,19 @@ def run(
         ref = np.empty((chunk, groups, n), dtype)
         ph = np.zeros((chunk, groups), np.int8)
         k = min(chunk, t_total - s)
-        ref[:k], ref[k:], ph[:k] = q_ref[s : s + k], q_ref[s + k - 1], phase[s : s + k]
-        carry, rec = fn(
+        ref[:k], ref[k:], ph[:k] = (
+            plan.q_ref[s : s + k],
+            plan.q_ref[s + k - 1],
+            plan.phase[s : s + k],
+        )
+        carry, rec = job.fn(
             plan_fields,
             carry,
-            put_shared(ref),
-            put_shared(ph),
-            xs_of(s),
-            rows_of(s, noise_step),
-            rows_dev,
+            job.put_shared(ref),
+            job.put_shared(ph),
+            _xs_of(job, plan, s),
+            _rows_of(job, plan, s, plan.noise_step),
+            job.rows_dev,
             np.int32(s),
             np.int32(k),
         )
@@ -268,18 +419,7 @@ def run(
         pending = (s, k, rec)
     if pending is not None:
         consume(pending)
-    clock.finish()
-    t = (np.arange(n_rec) * every + 1) * CONTROL_PERIOD
-    return MjxRecording(
-        t,
-        out.get("q"),
-        out.get("dq"),
-        out.get("current"),
-        q_start,
-        np.asarray(carry[3])[:w].astype(int),
-        every,
-        None if reduce is None else jax.tree.map(lambda a: a[:w], carry[4]),
-    )
+    return carry, out
 
 
 def _reduction_rows(reduce: Reduction | None, n_rec: int, groups: int) -> Any:
@@ -318,9 +458,9 @@ def _build(
     qacc_warmstart, fault step (first step with a joint at its limit, beyond
     ``following_error`` rad of its target or faster than ``overspeed`` rad/s), the reduction's
     carry (``Reduction``; () without one)."""
-    mx, d0, dtype, n = sim._mx, sim._d0, sim.dtype, sim.n
-    lo = jnp.asarray(sim._hard[:, 0], dtype)
-    hi = jnp.asarray(sim._hard[:, 1], dtype)
+    mx, d0, dtype, n = sim.mjx_model, sim.mjx_data, sim.dtype, sim.n
+    lo = jnp.asarray(sim.joint_limits[:, 0], dtype)
+    hi = jnp.asarray(sim.joint_limits[:, 1], dtype)
     groups = chunk // every
     step_fn = implicitfast_step(sim.model, dtype)
 
@@ -388,4 +528,4 @@ def _build(
 
     # fields, carry and the recorded worlds (each device's own, ``device_rows``): per world
     specs = (WORLDS, WORLDS, SHARED, SHARED, SHARED, SHARED, WORLDS, SHARED, SHARED)
-    return sim._ahead_of_time(chunk_fn, 1, specs, WORLDS)
+    return sim.ahead_of_time(chunk_fn, 1, specs, WORLDS)

@@ -27,23 +27,20 @@ from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.interface import ArmLimits
 from jaxcomp.hardware.mjx import closed_loop, runner
-from jaxcomp.hardware.mjx.chunks import PyTree
-from jaxcomp.hardware.mjx.closed_loop import ClosedLoopResult, Policy, PushSchedule
+from jaxcomp.hardware.mjx.chunks import chunk_length
 from jaxcomp.hardware.mjx.gains import servo_gains
-from jaxcomp.hardware.mjx.mesh import partitioner, per_device
+from jaxcomp.hardware.mjx.mesh import devices, partitioner, per_device
 from jaxcomp.hardware.mjx.model import (
     MIN_FRICTION_LOSS,
     PAYLOAD_BODY,
     build_model,
     end_effector_site,
 )
-from jaxcomp.hardware.mjx.runner import MjxRecording
+from jaxcomp.hardware.mjx.runner import SETTLE_STEPS
 from jaxcomp.hardware.mjx.truth import BatchTruth, true_inertial_params
 from jaxcomp.hardware.truth import TrueRobot, friction_loss_torque
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import RobotParams, arm_joint_indices
-
-SETTLE_STEPS = 500  # the CPU Simulator's settling at the initial pose before t = 0
 
 
 class MjxSimulator:
@@ -106,10 +103,12 @@ class MjxSimulator:
         )
         self._payload_id = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, PAYLOAD_BODY)
         self._hard = self.robot.joint_limits[arm_joint_indices(self.robot)]
+        self._hard.flags.writeable = False  # public, read-only (``joint_limits``)
         self.effort = np.abs(m.jnt_actfrcrange).max(1)
         # CURRENT mode (run_closed_loop): torque limits (inf where none), the arm's current
         # limits (A, as ArmLimits), the end-effector site and its body (pushes)
         self._torque_limit = np.where(m.jnt_actfrclimited.astype(bool), self.effort, np.inf)
+        self._torque_limit.flags.writeable = False  # public, read-only (``torque_limit``)
         self.current_limit = ArmLimits.from_robot(self.robot, arm_joint_indices(self.robot)).current
         site = end_effector_site(self.robot)
         self._ee_site = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, site)
@@ -117,7 +116,7 @@ class MjxSimulator:
         # this process's first device (MJX's default, jax.devices()[0], is another process's
         # under jax.distributed)
         device = jax.local_devices()[0]
-        with self._precision():  # float32: the model's arrays and every traced literal
+        with self.precision():  # float32: the model's arrays and every traced literal
             self._mx = mjx.put_model(m, device=device)
             self._d0 = mjx.make_data(self._mx, device=device)
         self._compiled: dict[Hashable, Callable] = {}
@@ -129,12 +128,26 @@ class MjxSimulator:
     # ------------------------------------------------------------------ public
     @property
     def backend(self) -> str:
+        """JAX's default backend ("cpu", "gpu", ...), which the runs compile for."""
         return jax.default_backend()
 
     def world_fields(self, truth: BatchTruth) -> dict[str, np.ndarray]:
-        """The per-world arrays (W, ...) a run feeds the vmapped step (host, self.dtype):
-        MJX model fields by their tree path (``WORLD_MODEL_FIELDS``), plus ``kp`` N m/rad,
-        ``ratio`` A/(N m) and ``noise`` A."""
+        """The per-world arrays a run feeds the vmapped step.
+
+        Args:
+            truth: the worlds' true robots (W worlds, this simulator's joints and links).
+
+        Returns:
+            Host arrays (W, ...) of ``dtype``: MJX model fields by their tree path
+            (``WORLD_MODEL_FIELDS``; body_ipos m in the body frame, dof_frictionloss N m,
+            dof_damping N m s/rad, actuator_biasprm, opt.gravity m/s^2 world frame,
+            body_mass kg with a payload), plus ``kp`` (n,) N m/rad, ``ratio`` (n,) A/(N m)
+            and ``noise`` () A.
+
+        Raises:
+            InputError: a truth for other joints or links, or with a payload the simulator
+                was built without.
+        """
         m, w, n = self.model, truth.worlds, self.n
         if truth.ratio.shape[1] != n or truth.com_offset.shape[1] != len(self._body_ids):
             raise InputError(
@@ -177,141 +190,83 @@ class MjxSimulator:
         initial_pose: str | Sequence[float] | np.ndarray | None = None,
         settle_steps: int = SETTLE_STEPS,
     ) -> np.ndarray:
-        """Each world's settled pose (W, n) rad at t = 0 (the start a plan begins from)."""
+        """Each world's settled pose at t = 0 (the start a plan begins from).
+
+        Args:
+            truth: the worlds' true robots (W worlds).
+            initial_pose: a pose name, (n,) or (W, n) rad; None: ``Robot.idle_pose``.
+            settle_steps: steps of the settling.
+
+        Returns:
+            (W, n) rad.
+        """
         rec = self.run(truth, np.zeros((0, self.n)), initial_pose, settle_steps=settle_steps)
         return rec.q_start
 
-    def run(
-        self,
-        truth: BatchTruth,
-        q_ref: np.ndarray,
-        initial_pose: str | Sequence[float] | np.ndarray | None = None,
-        *,
-        settle_steps: int = SETTLE_STEPS,
-        seed: int = 0,
-        every: int = 1,
-        progress: Callable[[int, int], None] | None = None,
-        on_chunk: Callable[[int, MjxRecording], None] | None = None,
-        keep: bool = True,
-        group: Sequence[int] | np.ndarray | None = None,
-        reduce: runner.Reduction | None = None,
-        record: Sequence[int] | np.ndarray | None = None,
-        world_ids: Sequence[int] | np.ndarray | None = None,
-        phase: np.ndarray | None = None,
-        noise_step: np.ndarray | None = None,
-    ) -> MjxRecording:
-        """Drive every world through the position targets ``q_ref`` (T, n) rad at 1 kHz.
-
-        ``q_ref`` may also be (T, G, n): G references run side by side, world w following
-        reference ``group[w]`` ((W,) ints in [0, G); e.g. the sweeps of one plan as parallel
-        segments).
-
-        Each world starts at ``initial_pose`` (name, (n,) or (W, n) rad; default "home"),
-        is servoed there for ``settle_steps`` steps (as a fresh CPU ``Simulator``), then
-        follows ``q_ref``: step i commands q_ref[i] and records the state after it. Records
-        every ``every``-th sample (0, every, ...); the current noise of world w at step i is
-        ``noise_w N(0, 1)`` from ``fold_in(fold_in(PRNGKey(seed), id_w), c)``, ``id_w`` =
-        ``world_ids[w]`` (default w) and c = ``noise_step[i, group[w]]`` ((T, G) ints, default i),
-        so it depends neither on chunking nor, with global ids, on how worlds are batched
-        (nor, with the steps of one plan as ``noise_step``, on where a job runs).
-        ``progress(steps_done, steps_total)`` after each chunk;
-        ``on_chunk(first_sample, recording_of_the_chunk)`` streams samples; ``keep=False``
-        returns q, dq, current as None (bounded host memory; without ``on_chunk`` no sample
-        leaves the device). ``record``: only these worlds' samples leave the device (default
-        all; q, dq, current then have M = len(record) rows).
-        ``reduce``: a ``runner.Reduction`` of every world's samples on the device, its final
-        carry returned as ``reduced``. ``phase`` (T, G) of ``runner.PLAN`` (default),
-        ``SETTLE`` (faults not counted) or ``RESTART`` (the world set at rest at its reference,
-        then settling): several jobs one after another in one world. See ``runner``.
-        """
-        return runner.run(
-            self,
-            truth,
-            q_ref,
-            initial_pose,
-            settle_steps=settle_steps,
-            seed=seed,
-            every=every,
-            progress=progress,
-            on_chunk=on_chunk,
-            keep=keep,
-            group=group,
-            reduce=reduce,
-            record=record,
-            world_ids=world_ids,
-            phase=phase,
-            noise_step=noise_step,
-        )
-
-    def run_closed_loop(
-        self,
-        truth: BatchTruth,
-        policy: Policy,
-        params: PyTree,
-        state: PyTree | None,
-        steps: int,
-        *,
-        reference: np.ndarray | None = None,
-        pushes: PushSchedule | None = None,
-        initial_pose: str | Sequence[float] | np.ndarray | None = None,
-        settle_steps: int = SETTLE_STEPS,
-        seed: int = 0,
-        every: int = 0,
-        progress: Callable[[int, int], None] | None = None,
-        world_ids: Sequence[int] | np.ndarray | None = None,
-    ) -> ClosedLoopResult:
-        """Drive every world in CURRENT mode with ``policy`` for ``steps`` steps of 1 ms.
-
-        Each world settles at ``initial_pose`` under the position servo for ``settle_steps``
-        (>= 1) steps, as in ``run``; from t = 0 the policy maps each sample k (``Observation``
-        at t = k CONTROL_PERIOD, k = 0 .. steps) to the motor currents (n,) A of step k (the
-        last sample's are not applied): torque = current / true ratio, clamped at the effort
-        limit, as the CPU Simulator's CURRENT mode (the sample before a step, the command
-        after it: ``control.loop.run_control`` in lock step, with ``steps`` cycles). The
-        measured current is ratio x applied torque + noise; world w's noise at sample k comes
-        from ``fold_in(fold_in(PRNGKey(seed), id_w), k)``, ``id_w`` = ``world_ids[w]``
-        (default w): with global ids it does not depend on how the worlds are chunked.
-
-        ``policy`` is a ``Policy(init, step)`` of pure JAX functions of one world, vmapped
-        over worlds here; ``params`` is a pytree of (W, ...) arrays; ``state`` the initial
-        policy state, a pytree of (W, ...) arrays, or None when ``policy.init`` makes it from
-        sample 0. ``reference`` (steps + 1, m), shared by the worlds, gives row k to the
-        policy with sample k (None: an empty row). ``pushes`` act on the end effectors (world
-        frame).
-
-        A world goes to POSITION mode, holding its measured position, for the rest of the run
-        (``fault_step``, ``fault_code``) when, as on the CPU Simulator and the ``Arm``, a joint
-        reaches its limit, a torque exceeds the effort limit or a joint ``overspeed`` (the
-        sample after the step shows the fault), or at a sample whose command is refused (NaN/inf
-        or beyond ``current_limit`` A, never sent) or where the policy returns ``stop``; the
-        policy state stays as after the last sample whose command was sent (``run_control``:
-        a tripped sample is not counted). Records every ``every``-th step (0: only the final
-        state); ``progress(steps_done, steps_total)`` after each chunk. See ``closed_loop``.
-        """
-        return closed_loop.run(
-            self,
-            truth,
-            policy,
-            params,
-            state,
-            steps,
-            reference=reference,
-            pushes=pushes,
-            initial_pose=initial_pose,
-            settle_steps=settle_steps,
-            seed=seed,
-            every=every,
-            progress=progress,
-            world_ids=world_ids,
-        )
+    #: ``run(truth, q_ref, initial_pose=None, *, settle_steps=SETTLE_STEPS, seed=0, every=1,
+    #: ...) -> MjxRecording``: every world in POSITION mode through the position targets
+    #: ``q_ref`` (``runner.run``, documented there).
+    run = runner.run
+    #: ``run_closed_loop(truth, policy, params, state, steps, *, reference=None, pushes=None,
+    #: ...) -> ClosedLoopResult``: every world in CURRENT mode driven by a ``Policy``
+    #: (``closed_loop.run``, documented there).
+    run_closed_loop = closed_loop.run
 
     # ------------------------------------------------------------------ shared by the runs
-    def _precision(self) -> AbstractContextManager:
-        """Context of JAX's 64-bit mode for this simulator's dtype (jaxcomp enables it)."""
+    @property
+    def mjx_model(self) -> mjx.Model:
+        """The MJX model every world shares, on this process's first device (a run replaces
+        its per-world fields, ``world_fields``, with ``tree_replace``)."""
+        return self._mx
+
+    @property
+    def mjx_data(self) -> mjx.Data:
+        """The MJX data a world's step starts from (``mjx.make_data``; a run replaces its
+        qpos, qvel, qacc_warmstart, ctrl and applied forces)."""
+        return self._d0
+
+    @property
+    def joint_limits(self) -> np.ndarray:
+        """(n, 2) rad, read-only: each arm joint's hard limits [lower, upper]."""
+        return self._hard
+
+    @property
+    def torque_limit(self) -> np.ndarray:
+        """(n,) N m, read-only: each actuator's effort limit in CURRENT mode (inf where the
+        model sets none)."""
+        return self._torque_limit
+
+    @property
+    def ee_site(self) -> int:
+        """The end-effector site's id in ``model`` (where pushes act)."""
+        return self._ee_site
+
+    @property
+    def ee_body(self) -> int:
+        """The id in ``model`` of the body that carries the end-effector site."""
+        return self._ee_body
+
+    def precision(self) -> AbstractContextManager:
+        """JAX's 64-bit mode for this simulator's dtype (jaxcomp enables it).
+
+        Returns:
+            A context manager: traced literals and arrays made inside it take ``dtype``.
+        """
         return jax.enable_x64(self.dtype == jnp.dtype(jnp.float64))
 
-    def _initial_pose(self, pose: str | Sequence[float] | np.ndarray | None, w: int) -> np.ndarray:
-        """(w, n) rad: a pose name, (n,) or (w, n) rad; None: ``Robot.idle_pose``."""
+    def initial_poses(self, pose: str | Sequence[float] | np.ndarray | None, w: int) -> np.ndarray:
+        """Each world's initial pose.
+
+        Args:
+            pose: a pose name, (n,) or (w, n) rad; None: ``Robot.idle_pose``.
+            w: the number of worlds.
+
+        Returns:
+            (w, n) rad, a new array.
+
+        Raises:
+            InputError: not a pose name, or not finite of shape (n,) or (w, n).
+        """
         if pose is None:
             pose = self.robot.idle_pose[arm_joint_indices(self.robot)]
         if isinstance(pose, str):
@@ -325,27 +280,67 @@ class MjxSimulator:
             )
         return np.array(q)
 
-    def _world_keys(self, seed: int, worlds: int | np.ndarray) -> np.ndarray:
-        """(W, 2) PRNG keys of the current noise: world w's is ``fold_in(PRNGKey(seed), w)``
-        for w in ``worlds`` (ids, or a count: 0 .. worlds - 1)."""
+    def world_keys(self, seed: int, worlds: int | np.ndarray) -> np.ndarray:
+        """The PRNG keys of the worlds' current noise.
+
+        Args:
+            seed: the run's seed.
+            worlds: the worlds' ids (W,) ints, or a count W (ids 0 .. W - 1).
+
+        Returns:
+            (W, 2) uint32 keys: world w's is ``fold_in(PRNGKey(seed), id_w)``.
+        """
         ids = np.arange(worlds) if np.ndim(worlds) == 0 else np.asarray(worlds)
         fold = jax.vmap(jax.random.fold_in, (None, 0))
         return np.asarray(fold(jax.random.PRNGKey(seed), jnp.asarray(ids, jnp.int32)))
 
-    def _compiled_function(self, key: Hashable, build: Callable[[], Callable]) -> Callable:
-        """The chunk function of ``key``, built once per simulator. ``key`` must hold every
-        setting ``build`` reads that may change between runs (thresholds, limits, mesh,
-        shapes), so that an entry never goes stale."""
+    def chunk_length(self, worlds: int, every: int, steps: int) -> int:
+        """Steps per compiled call of a run of this simulator (``chunks.chunk_length`` with
+        its ``chunk_steps``, backend, mesh, joints and dtype).
+
+        Args:
+            worlds: the run's worlds, padded to the mesh (``mesh.world_padding``).
+            every: the recording decimation (>= 1).
+            steps: the run's longest phase, steps.
+
+        Returns:
+            The chunk length, steps (a multiple of ``every``).
+        """
+        per_device = worlds // devices(self.mesh)
+        return chunk_length(
+            self.chunk_steps, self.backend, per_device, self.n, self.dtype.itemsize, every, steps
+        )
+
+    def compiled_function(self, key: Hashable, build: Callable[[], Callable]) -> Callable:
+        """The chunk function of ``key``, built once per simulator.
+
+        Args:
+            key: hashable; it must hold every setting ``build`` reads that may change between
+                runs (thresholds, limits, mesh, shapes), so that an entry never goes stale.
+            build: makes the function (called on the first use of ``key``).
+
+        Returns:
+            The function.
+        """
         if key not in self._compiled:
             self._compiled[key] = build()
         return self._compiled[key]
 
-    def _ahead_of_time(
+    def ahead_of_time(
         self, fn: Callable, carry_arg: int, in_specs: Any, out_specs: Any
     ) -> Callable:
-        """``fn`` run on every device's worlds (``mesh.per_device`` with these specs; on a
-        mesh), jitted (argument ``carry_arg``, the carry, donated on accelerators) and
-        compiled ahead of time on its first call's shapes, timed into ``compile_seconds``."""
+        """``fn`` on every device's worlds, jitted and compiled ahead of time.
+
+        Args:
+            fn: a chunk function of the worlds of one device.
+            carry_arg: the index of its carry argument (donated on accelerators).
+            in_specs, out_specs: its arguments' and outputs' partition specs
+                (``mesh.per_device``; used on a mesh).
+
+        Returns:
+            The function, compiled on its first call's shapes; the compile time goes into
+            ``compile_seconds``.
+        """
         donate = () if self.backend == "cpu" else (carry_arg,)
         jitted = jax.jit(per_device(fn, self.mesh, in_specs, out_specs), donate_argnums=donate)
         compiled: list[Callable] = []
@@ -353,15 +348,19 @@ class MjxSimulator:
         def call(*args):
             if not compiled:  # compile ahead of time on the first call's shapes, timed
                 t0 = time.perf_counter()
-                with self._precision(), partitioner(self.mesh):
+                with self.precision(), partitioner(self.mesh):
                     compiled.append(jitted.lower(*args).compile())
                 self.compile_seconds += time.perf_counter() - t0
             return compiled[0](*args)
 
         return call
 
-    def _clock(self) -> RunClock:
-        """A clock of the run starting now (``RunClock``)."""
+    def run_clock(self) -> RunClock:
+        """A clock of the run starting now.
+
+        Returns:
+            The ``RunClock``.
+        """
         return RunClock(self)
 
 
@@ -375,9 +374,11 @@ class RunClock:
         self.marks = [(time.perf_counter(), sim.compile_seconds)]
 
     def mark(self) -> None:
+        """End a phase now."""
         self.marks.append((time.perf_counter(), self.sim.compile_seconds))
 
     def finish(self) -> None:
+        """End the last phase and set ``sim.last_timing`` (prepare, settle, plan s)."""
         self.mark()
         spans = zip(self.marks[:-1], self.marks[1:], strict=True)
         seconds = [(t1 - t0) - (c1 - c0) for (t0, c0), (t1, c1) in spans]
