@@ -1,6 +1,7 @@
 """Current-based impedance control of the arm and the base follower.
 
-``make_impedance_controller`` (paper Eq. 3-5, 16; jitted JAX) and its pinocchio twin,
+``make_impedance_controller`` (paper Eq. 3-5, 16; jitted JAX: ``impedance``, its inputs and
+diagnostics ``impedance_io``, its terms ``impedance_terms``) and its pinocchio twin,
 ``make_velocity_controller`` (the non-compliant reference), ``BaseFollower`` (Eq. 20), and
 their gains (``ImpedanceGains``, ``VelocityGains``, ``BaseGains``; ``impedance_gains``
 carries the impedance presets over to any arm). ``control.loop.run_control`` runs a controller
@@ -13,12 +14,9 @@ frame; SI units (m, rad, s, N, N m, A).
 
 from jaxcomp.control.base_follower import BaseFollower, follow_twist
 from jaxcomp.control.gains import BaseGains, ImpedanceGains, JointGains, VelocityGains
-from jaxcomp.control.impedance import (
-    Diagnostics,
-    ImpedanceController,
-    ImpedanceControllerPinocchio,
-    make_impedance_controller,
-)
+from jaxcomp.control.impedance import ImpedanceController, make_impedance_controller
+from jaxcomp.control.impedance_io import Diagnostics
+from jaxcomp.control.impedance_pinocchio import ImpedanceControllerPinocchio
 from jaxcomp.control.presets import impedance_gains
 from jaxcomp.control.velocity import (
     VelocityController,

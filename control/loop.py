@@ -84,7 +84,8 @@ import numpy as np
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.control.base_follower import BaseFollower
 from jaxcomp.control.gains import BaseGains
-from jaxcomp.control.impedance import ImpedanceController, estimate_slice, packed_slices
+from jaxcomp.control.impedance import ImpedanceController
+from jaxcomp.control.impedance_io import estimate_slice, packed_slices
 from jaxcomp.control.run_link import MonitorStart, RunLink
 from jaxcomp.control.timing import CycleTimer, wait_until
 from jaxcomp.control.trajectory import Static, Trajectory, TrajectorySpec, parse_trajectory
@@ -293,7 +294,7 @@ class _Law:
 
     The controller runs as its ``packed_step`` on one preallocated numpy vector (q | dq |
     previous command | target pos | vel | acc | measured current | live gains [| rot], see
-    ``impedance.packed_slices``) that the loop fills in place: one host-to-device and one
+    ``impedance_io.packed_slices``) that the loop fills in place: one host-to-device and one
     device-to-host copy per cycle. An impedance controller also estimates the external force
     (``estimate``: its diagnostics' current_model, external force and band, after ``run``).
     """

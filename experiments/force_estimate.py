@@ -33,7 +33,7 @@ import numpy as np  # noqa: E402
 from paper_common import ramped_push  # noqa: E402
 
 from jaxcomp.control import ImpedanceGains, make_impedance_controller  # noqa: E402
-from jaxcomp.control.impedance import live_gains  # noqa: E402
+from jaxcomp.control.impedance_io import live_gains  # noqa: E402
 from jaxcomp.control.loop import arm_model, arm_params, run_control  # noqa: E402
 from jaxcomp.control.run_link import RunLink, Tuning  # noqa: E402
 from jaxcomp.hardware import Simulator, TrueRobot  # noqa: E402

@@ -34,7 +34,7 @@ from jaxcomp.control import (
     make_impedance_controller,
     make_velocity_controller,
 )
-from jaxcomp.control.impedance import live_gains
+from jaxcomp.control.impedance_io import live_gains
 from jaxcomp.control.loop import (
     ArmMount,
     arm_model,

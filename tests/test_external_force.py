@@ -19,7 +19,7 @@ from jaxcomp.control.external_force import (
     model_current,
     torque_to_force,
 )
-from jaxcomp.control.impedance import Diagnostics, live_gains
+from jaxcomp.control.impedance_io import Diagnostics, live_gains
 from jaxcomp.control.loop import arm_model, arm_params, run_control
 from jaxcomp.control.run_link import RunLink, Tuning
 from jaxcomp.hardware import Simulator, TrueRobot

@@ -15,6 +15,7 @@ import synthetic
 from odd_arms import serial_arm
 
 import jaxcomp
+from jaxcomp import plausibility
 from jaxcomp.cli import main as cli_main
 from jaxcomp.control.impedance import make_impedance_controller
 from jaxcomp.errors import InputError
@@ -26,7 +27,9 @@ from jaxcomp.plausibility import (
     MIN_SAMPLES,
     RATIO_RANGE,
     SCALE_FACTOR,
+    CheckedParams,
     check_params,
+    checked_arm_params,
     params_problems,
     recording_problems,
     stated_scale,
@@ -114,6 +117,48 @@ def test_the_controller_refuses_implausible_params_before_it_is_built():
 
 def robot_ratio(robot):
     return RobotParams.nominal(robot).ratio
+
+
+def _count_checks(monkeypatch, method: str) -> list[tuple[str, str]]:
+    """The (check, model) calls of ``RobotParams.check`` ("check") and of the plausibility
+    bounds ("plausibility") on params whose ``method`` is ``method``, from now on."""
+    calls = []
+    check, problems = RobotParams.check, plausibility.params_problems
+
+    def counted_check(self, robot):
+        if self.method == method:
+            calls.append(("check", robot.name))
+        return check(self, robot)
+
+    def counted_problems(params, robot):
+        if params.method == method:
+            calls.append(("plausibility", robot.name))
+        return problems(params, robot)
+
+    monkeypatch.setattr(RobotParams, "check", counted_check)
+    monkeypatch.setattr(plausibility, "params_problems", counted_problems)
+    return calls
+
+
+def test_the_controller_takes_checked_params_as_they_are(monkeypatch):
+    """Checked params pass the controller's own guard (model, shapes, finite numbers) without
+    a second check; params it was not given checked it checks itself."""
+    robot = jaxcomp.load_robot("gen3_lite")
+    truth = dataclasses.replace(_truth(robot, 0), method="under test")
+    checked = checked_arm_params(truth, robot)
+    calls = _count_checks(monkeypatch, "under test")
+    make_impedance_controller(robot, checked)
+    assert calls == []
+    make_impedance_controller(robot, truth)
+    assert calls == [("check", "gen3_lite"), ("plausibility", "gen3_lite")]
+    other = CheckedParams(dataclasses.replace(checked.params, model="wx250s"), checked.inertial)
+    with pytest.raises(InputError, match="params are for model 'wx250s', the robot is 'gen3_lite'"):
+        make_impedance_controller(robot, other)
+    nan = checked.inertial._replace(mass=np.full_like(checked.inertial.mass, np.nan))
+    with pytest.raises(InputError, match="NaN or inf"):
+        make_impedance_controller(robot, checked._replace(inertial=nan))
+    with pytest.raises(InputError, match="the robot is 'wx250s'"):  # the arm's own model only
+        checked_arm_params(truth, jaxcomp.load_robot("wx250s"), jaxcomp.load_robot("wx250s"))
 
 
 # ------------------------------------------------------------------- recordings and the fit

@@ -495,10 +495,10 @@ def close_robot(opened: Opened) -> None:
 
 
 def checked_live_gains(arm_robot, gains, stiffness, damping, friction_compensation: bool):
-    """The live gains of a run (``impedance.live_gains``): ``stiffness`` N/m and ``damping``
+    """The live gains of a run (``impedance_io.live_gains``): ``stiffness`` N/m and ``damping``
     N s/m (None: ``gains``'), within the arm's safe ranges (``presets.check_live_gains``, the
     same check for the command line and the console), friction compensation on or off."""
-    from jaxcomp.control.impedance import live_gains
+    from jaxcomp.control.impedance_io import live_gains
     from jaxcomp.control.presets import check_live_gains
 
     k = gains.stiffness[0] if stiffness is None else stiffness

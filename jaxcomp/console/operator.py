@@ -61,7 +61,7 @@ class Operator:
     """
 
     def __init__(self, arm, base, sim, robot, controller, preset: str, out: Path, realtime=True):
-        from jaxcomp.control.impedance import live_gains
+        from jaxcomp.control.impedance_io import live_gains
         from jaxcomp.control.loop import ArmMount, arm_model
         from jaxcomp.control.presets import gain_limits
         from jaxcomp.control.run_link import Tuning
@@ -140,7 +140,7 @@ class Operator:
         raise InputError(f"unknown command {name!r}")
 
     def _live(self, args: dict) -> np.ndarray:
-        from jaxcomp.control.impedance import live_gains
+        from jaxcomp.control.impedance_io import live_gains
         from jaxcomp.control.presets import check_live_gains
 
         k, d = check_live_gains(self.arm_robot, args.get("stiffness"), args.get("damping"))
