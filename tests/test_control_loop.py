@@ -26,8 +26,9 @@ import pytest
 from click.testing import CliRunner
 
 from jaxcomp.cli import main as cli_main
-from jaxcomp.cli.control import _target_marker, parse_push
+from jaxcomp.cli.control import parse_push
 from jaxcomp.cli.group import cli
+from jaxcomp.cli.robot_session import target_marker
 from jaxcomp.control import (
     ImpedanceGains,
     loop,
@@ -605,10 +606,10 @@ def test_cli_guidance_with_a_params_file(tmp_path):
 
 def test_viewer_target_marker():
     sim = Simulator(ARM)
-    assert _target_marker(sim) is None  # headless: no viewer, no hook
+    assert target_marker(sim) is None  # headless: no viewer, no hook
     scene = mujoco.MjvScene(sim.model, maxgeom=4)
     fake = SimpleNamespace(viewer=SimpleNamespace(lock=contextlib.nullcontext, user_scn=scene))
-    hook = _target_marker(fake)
+    hook = target_marker(fake)
     hook(20, None, None, np.array([0.1, 0.2, 0.3]))
     assert scene.ngeom == 1
     np.testing.assert_allclose(scene.geoms[0].pos, [0.1, 0.2, 0.3])

@@ -12,13 +12,18 @@ import zipfile
 import numpy as np
 import pytest
 import synthetic
+from click.testing import CliRunner
 from odd_arms import serial_arm
 
 import jaxcomp
 from jaxcomp import plausibility
 from jaxcomp.cli import main as cli_main
+from jaxcomp.cli.group import cli
+from jaxcomp.control import impedance, loop
 from jaxcomp.control.impedance import make_impedance_controller
+from jaxcomp.control.loop import ControlResult
 from jaxcomp.errors import InputError
+from jaxcomp.hardware import TrueRobot
 from jaxcomp.params import gyration_radii
 from jaxcomp.plausibility import (
     COM_MIN,
@@ -138,6 +143,31 @@ def _count_checks(monkeypatch, method: str) -> list[tuple[str, str]]:
     monkeypatch.setattr(RobotParams, "check", counted_check)
     monkeypatch.setattr(plausibility, "params_problems", counted_problems)
     return calls
+
+
+def test_params_are_checked_once_on_their_way_to_the_controller(tmp_path, monkeypatch):
+    """`jaxcomp control --params FILE` on the simulated mobile Gen3 Lite: the file's params
+    (identified on the mobile model) are renamed for the arm-alone model, checked against it
+    and bounded once each, and the controller takes them as they are."""
+    mobile = jaxcomp.load_robot("mobile_gen3_lite")
+    params = dataclasses.replace(TrueRobot.draw(mobile, 3).params, method="under test")
+    path = params.save(tmp_path / "params.json")
+    calls = _count_checks(monkeypatch, "under test")
+    built = []
+
+    def no_run(arm, base, controller, *args, **kwargs):  # the controller as the loop gets it
+        built.append(controller)
+        return ControlResult("completed", "not run")
+
+    monkeypatch.setattr(impedance.ImpedanceController, "compile", lambda self, step=False: 0.0)
+    monkeypatch.setattr(loop, "run_control", no_run)
+    args = ["control", "--params", str(path), "--out", str(tmp_path / "run")]
+    out = CliRunner().invoke(cli, args)
+    assert out.exit_code == 0, out.output + repr(out.exception)
+    assert calls == [("check", "gen3_lite"), ("plausibility", "gen3_lite")]
+    (controller,) = built
+    assert controller.params.model == "gen3_lite" and controller.params.method == "under test"
+    np.testing.assert_array_equal(controller.resolved.ratio, params.ratio)
 
 
 def test_the_controller_takes_checked_params_as_they_are(monkeypatch):

@@ -386,14 +386,14 @@ class Operator:
         controller with the new params (compiled here, swapped in when ready)."""
         from jaxcomp.cli.calibrate import _fit as fit_checked
         from jaxcomp.control.impedance import make_impedance_controller
-        from jaxcomp.control.loop import arm_params
+        from jaxcomp.plausibility import checked_arm_params
 
         try:
             self.status(state="fitting", detail=f"{rec.n_samples} samples")
             params = fit_checked([rec], "jax")
             params.save(out / "params.json")
             controller = make_impedance_controller(
-                self.arm_robot, arm_params(params, self.arm_robot), self.controller.gains
+                self.arm_robot, checked_arm_params(params, self.arm_robot), self.controller.gains
             )
             controller.compile()
             self.controller = controller
@@ -415,9 +415,10 @@ def simulated_operator(
     'home') whose controller knows the true params (demos, tests, benchmarks); the controller
     is built, not compiled (``operator.controller.compile()``)."""
     from jaxcomp.control.impedance import make_impedance_controller
-    from jaxcomp.control.loop import arm_model, arm_params
+    from jaxcomp.control.loop import arm_model
     from jaxcomp.control.presets import impedance_gains
     from jaxcomp.hardware import Simulator, TrueRobot
+    from jaxcomp.plausibility import checked_arm_params
     from jaxcomp.robot import load_robot
 
     robot = load_robot(model)
@@ -425,7 +426,7 @@ def simulated_operator(
     truth = TrueRobot.draw(robot, seed)
     sim = Simulator(robot, truth, seed=seed, initial_pose="home")
     controller = make_impedance_controller(
-        arm, arm_params(truth.params, arm), impedance_gains(arm, preset)
+        arm, checked_arm_params(truth.params, arm), impedance_gains(arm, preset)
     )
     base = sim.base if sim.has_base else None
     return Operator(sim.arm, base, sim, robot, controller, preset, Path(out))
