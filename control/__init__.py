@@ -5,8 +5,10 @@ diagnostics ``impedance_io``, its terms ``impedance_terms``) and its pinocchio t
 ``make_velocity_controller`` (the non-compliant reference), ``BaseFollower`` (Eq. 20), and
 their gains (``ImpedanceGains``, ``VelocityGains``, ``BaseGains``; ``impedance_gains``
 carries the impedance presets over to any arm). ``control.loop.run_control`` runs a controller
-at 1 kHz on a ``hardware`` ``Arm`` (and ``Base``), with its ``watchdog``, ``timing`` and
-end-effector ``trajectory``; ``run_link`` connects a run to an operator on another thread
+at 1 kHz on a ``hardware`` ``Arm`` (and ``Base``; frames and models: ``mount``), with its
+``watchdog``, ``timing`` and end-effector ``trajectory``: ``run_setup``, then ``cycle`` by
+``cycle`` (the controller through ``law_adapter``), recorded by ``run_recording`` into a
+``run_result``; ``run_link`` connects a run to an operator on another thread
 (stop, live gains, monitor). ``external_force`` estimates the force a person applies on the end
 effector from the motor currents (in the impedance controller's step). Frames: the arm's base
 frame; SI units (m, rad, s, N, N m, A).

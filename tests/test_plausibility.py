@@ -21,7 +21,7 @@ from jaxcomp.cli import main as cli_main
 from jaxcomp.cli.group import cli
 from jaxcomp.control import impedance, loop
 from jaxcomp.control.impedance import make_impedance_controller
-from jaxcomp.control.loop import ControlResult
+from jaxcomp.control.run_result import ControlResult
 from jaxcomp.errors import InputError
 from jaxcomp.hardware import TrueRobot
 from jaxcomp.params import gyration_radii

@@ -109,7 +109,7 @@ def _console(
     )
     from jaxcomp.console.operator import Operator
     from jaxcomp.control.impedance import make_impedance_controller
-    from jaxcomp.control.loop import arm_model
+    from jaxcomp.control.mount import arm_model
     from jaxcomp.control.presets import impedance_gains
     from jaxcomp.robot_params import RobotParams
 

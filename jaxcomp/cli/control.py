@@ -19,7 +19,7 @@ from jaxcomp.cli.robot_options import (
 from jaxcomp.cli.robot_session import DEFAULT_MODEL
 from jaxcomp.errors import FileError, InputError
 
-#: What an earlier run left in --out: ``control.loop.RECORDING`` and its part files.
+#: What an earlier run left in --out: ``control.run_recording.RECORDING`` and its part files.
 _EARLIER_RUN = ("recording.npz", "recording.npz.parts")
 
 _TRAJ_HELP = (
@@ -275,7 +275,8 @@ def _control(
         open_robot,
         target_marker,
     )
-    from jaxcomp.control.loop import ArmMount, arm_model, run_control
+    from jaxcomp.control.loop import run_control
+    from jaxcomp.control.mount import ArmMount, arm_model
     from jaxcomp.control.run_link import RunLink, Tuning
     from jaxcomp.control.trajectory import parse_trajectory
     from jaxcomp.robot_params import RobotParams

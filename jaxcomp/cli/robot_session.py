@@ -100,7 +100,7 @@ def kortex_params(params, params_file: str | None):
     Raises:
         InputError: params for another model, not fitting the arm, or implausible.
     """
-    from jaxcomp.control.loop import mobile_model_name
+    from jaxcomp.control.mount import mobile_model_name
     from jaxcomp.robot import load_robot
 
     gen3 = load_robot("gen3_lite")
@@ -140,7 +140,7 @@ def open_robot(
     Raises:
         InputError, ModelError: params or a model that do not fit; nothing is left open.
     """
-    from jaxcomp.control.loop import arm_model, mobile_model_name
+    from jaxcomp.control.mount import arm_model, mobile_model_name
     from jaxcomp.robot import load_robot
     from jaxcomp.robot_params import arm_joint_indices
 
@@ -224,7 +224,7 @@ def attach_console(opened: Opened, controller, link, port: int, host: str, on_lo
         The ``console.link.ConsoleLink`` (close it after the run).
     """
     from jaxcomp.console.link import ConsoleLink
-    from jaxcomp.control.loop import arm_model
+    from jaxcomp.control.mount import arm_model
     from jaxcomp.control.presets import gain_limits
     from jaxcomp.robot_params import BASE_JOINTS
 

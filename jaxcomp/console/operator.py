@@ -62,7 +62,7 @@ class Operator:
 
     def __init__(self, arm, base, sim, robot, controller, preset: str, out: Path, realtime=True):
         from jaxcomp.control.impedance_io import live_gains
-        from jaxcomp.control.loop import ArmMount, arm_model
+        from jaxcomp.control.mount import ArmMount, arm_model
         from jaxcomp.control.presets import gain_limits
         from jaxcomp.control.run_link import Tuning
 
@@ -415,7 +415,7 @@ def simulated_operator(
     'home') whose controller knows the true params (demos, tests, benchmarks); the controller
     is built, not compiled (``operator.controller.compile()``)."""
     from jaxcomp.control.impedance import make_impedance_controller
-    from jaxcomp.control.loop import arm_model
+    from jaxcomp.control.mount import arm_model
     from jaxcomp.control.presets import impedance_gains
     from jaxcomp.hardware import Simulator, TrueRobot
     from jaxcomp.plausibility import checked_arm_params
