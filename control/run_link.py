@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 
 
 class Tuning:
-    """Live gains for a running impedance loop (``impedance.live_gains``: K_d N/m, D_d N s/m,
+    """Live gains for a running impedance loop (``impedance_io.live_gains``: K_d N/m, D_d N s/m,
     friction compensation 1/0), set from any thread; the loop takes them up at its next cycle
     and then sets ``applied`` to their ``version``. The caller validates them
     (``presets.check_live_gains``)."""
@@ -32,8 +32,11 @@ class Tuning:
             self.set(live)
 
     def set(self, live) -> None:
-        """New live gains (``impedance.LIVE_SIZE``,): a new array, so the loop never reads a
-        half-written one."""
+        """Set new live gains: a new array, so the loop never reads a half-written one.
+
+        Args:
+            live: (``impedance_io.LIVE_SIZE``,) K_d N/m | D_d N s/m | compensation 1/0.
+        """
         self.values = np.array(live, dtype=float)
         self.version += 1
 

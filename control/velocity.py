@@ -20,7 +20,7 @@ import numpy as np
 
 from jaxcomp import dynamics
 from jaxcomp.control.gains import VelocityGains
-from jaxcomp.control.impedance import (
+from jaxcomp.control.impedance_io import (
     check_joint_vector,
     check_vector3,
     packed_size,
@@ -52,7 +52,16 @@ class VelocityDiagnostics(NamedTuple):
 
 
 def velocity_step_fn(robot: Robot, gains: VelocityGains, site: str | None = None):
-    """The pure (unjitted) step function; see ``VelocityController.step``."""
+    """The pure (unjitted) step function.
+
+    Args:
+        robot: the arm-alone model (arm base frame). gains: the ``VelocityGains``.
+        site: the end-effector site; default the robot's end effector.
+
+    Returns:
+        ``step(q, target_pos, target_vel) -> (dq (n,) rad/s, VelocityDiagnostics)``, as
+        ``VelocityController.step``.
+    """
     tree, s = robot.tree, robot.site_index(robot.end_effector if site is None else site)
     posture, k_n, _, limit = gains.joint_arrays(robot)
     k_p, lam2 = np.asarray(gains.gain), gains.pinv_damping**2
@@ -74,8 +83,15 @@ def velocity_step_fn(robot: Robot, gains: VelocityGains, site: str | None = None
 
 
 def velocity_packed_fn(step_fn, n: int):
-    """``step_fn`` on the impedance controller's packed input (``impedance.packed_size``;
-    only q, pos and vel are used) returning dq (n) | ``VelocityDiagnostics.data`` (7)."""
+    """``step_fn`` on the impedance controller's packed input (only q, pos and vel are used).
+
+    Args:
+        step_fn: a ``velocity_step_fn`` step. n: joints.
+
+    Returns:
+        ``packed(x) -> y``: x as ``impedance_io.packed_size(n)``, y dq (n) rad/s |
+        ``VelocityDiagnostics.data`` (7).
+    """
 
     def packed(x):
         s = unpack_state(x, n, False)
@@ -87,6 +103,11 @@ def velocity_packed_fn(step_fn, n: int):
 
 class VelocityController:
     """Reference Cartesian velocity controller (see module doc).
+
+    Args:
+        robot: the arm-alone model (arm base frame).
+        gains: default ``VelocityGains()``.
+        site: the end-effector site; default the robot's end effector.
 
     Attributes:
         robot, gains, site, n.
@@ -108,7 +129,18 @@ class VelocityController:
         self.packed_step = jax.jit(velocity_packed_fn(self.step_fn, self.n))
 
     def check_state(self, q, target_pos, target_vel=None) -> tuple:
-        """Validated device arrays for ``step`` (target_vel None: zeros); InputError if bad."""
+        """Validated device arrays for ``step``.
+
+        Args:
+            q: (n,) rad. target_pos: (3,) m. target_vel: (3,) m/s (None: zeros). Arm base
+                frame.
+
+        Returns:
+            The arguments of ``step``.
+
+        Raises:
+            InputError: naming a bad input.
+        """
         return (
             jnp.asarray(check_joint_vector(q, self.n, "q (rad)", self.robot)),
             jnp.asarray(check_vector3(target_pos, "target_pos", "m")),
@@ -120,12 +152,24 @@ class VelocityController:
         )
 
     def checked_step(self, q, target_pos, target_vel=None):
-        """``step`` after ``check_state``."""
+        """``step`` after ``check_state`` (same arguments).
+
+        Returns:
+            (dq (n,) rad/s, VelocityDiagnostics).
+        """
         return self.step(*self.check_state(q, target_pos, target_vel))
 
 
 def make_velocity_controller(
     robot: Robot, gains: VelocityGains | None = None, site: str | None = None
 ) -> VelocityController:
-    """A ``VelocityController`` for ``robot`` (the arm's own model, base frame)."""
+    """A ``VelocityController`` for ``robot``.
+
+    Args:
+        robot: the arm's own model (arm base frame). gains: default ``VelocityGains()``.
+        site: default the robot's end effector.
+
+    Returns:
+        The controller.
+    """
     return VelocityController(robot, gains, site)

@@ -35,11 +35,13 @@ from bench_loop import load, platform_baseline  # noqa: E402
 
 from jaxcomp.console.link import ConsoleLink  # noqa: E402
 from jaxcomp.control import ImpedanceGains, make_impedance_controller  # noqa: E402
-from jaxcomp.control.loop import arm_model, arm_params, run_control  # noqa: E402
+from jaxcomp.control.loop import run_control  # noqa: E402
+from jaxcomp.control.mount import arm_model  # noqa: E402
 from jaxcomp.control.presets import gain_limits  # noqa: E402
 from jaxcomp.control.run_link import RunLink  # noqa: E402
 from jaxcomp.control.timing import configure_jax_for_control, realtime_priority  # noqa: E402
 from jaxcomp.hardware import Simulator, TrueRobot  # noqa: E402
+from jaxcomp.plausibility import checked_arm_params  # noqa: E402
 from jaxcomp.robot import load_robot  # noqa: E402
 from jaxcomp.robot_params import BASE_JOINTS  # noqa: E402
 
@@ -179,7 +181,7 @@ def main() -> None:
         os.sched_setaffinity(0, others)  # the page's server and the browser inherit it
     truth = TrueRobot.draw(MOBILE, 0)
     controller = make_impedance_controller(
-        ARM, arm_params(truth.params, ARM), ImpedanceGains.tracking()
+        ARM, checked_arm_params(truth.params, ARM), ImpedanceGains.tracking()
     )
     controller.compile()
     if cpu is not None:

@@ -44,13 +44,17 @@ import numpy as np  # noqa: E402
 from paper_common import after, ramped_push  # noqa: E402
 
 from jaxcomp.control import ImpedanceGains, make_impedance_controller  # noqa: E402
-from jaxcomp.control.loop import arm_model, arm_params, run_control  # noqa: E402
+from jaxcomp.control.cycle import Cycle  # noqa: E402
+from jaxcomp.control.loop import run_control  # noqa: E402
+from jaxcomp.control.mount import arm_model  # noqa: E402
+from jaxcomp.control.run_recording import Recorder  # noqa: E402
 from jaxcomp.control.timing import (  # noqa: E402
     configure_jax_for_control,
     realtime_priority,
     wait_until,
 )
 from jaxcomp.hardware import Simulator, TrueRobot  # noqa: E402
+from jaxcomp.plausibility import checked_arm_params  # noqa: E402
 from jaxcomp.robot import load_robot  # noqa: E402
 from jaxcomp.robot_params import RobotParams  # noqa: E402
 
@@ -153,8 +157,6 @@ def profile(params, truth, seconds: float = 3.0) -> None:
     (tracking a circle, pushed): each part is wrapped in a timer (~0.3 us added per call)."""
     from collections import defaultdict
 
-    from jaxcomp.control import loop
-
     ctrl = make_impedance_controller(ARM, params, ImpedanceGains.tracking())
     ctrl.compile()
     times = defaultdict(list)
@@ -181,7 +183,7 @@ def profile(params, truth, seconds: float = 3.0) -> None:
     wrap(sim.base, "odometry", "base.odometry")
     wrap(sim.base, "send_twist", "base.send_twist")
     wrap(ctrl, "packed_step", "  controller.packed_step (JAX)")
-    cycle_init = loop._Cycle.__init__
+    cycle_init = Cycle.__init__
 
     def init(self, *a, **k):
         cycle_init(self, *a, **k)
@@ -192,19 +194,19 @@ def profile(params, truth, seconds: float = 3.0) -> None:
         wrap(self.wd, "check_command", "watchdog.check_command")
         wrap(self.follower, "twist", "follower.twist (Eq. 20)")
 
-    recorder_init = loop._Recorder.__init__
+    recorder_init = Recorder.__init__
 
     def rec_init(self, *a, **k):
         recorder_init(self, *a, **k)
         wrap(self, "add", "recorder.add")
-        wrap(self, "_write", "recorder._write (per 1000 samples)")
+        wrap(self, "write_rows", "recorder.write_rows (per 1000 samples)")
 
-    loop._Cycle.__init__, loop._Recorder.__init__ = init, rec_init
+    Cycle.__init__, Recorder.__init__ = init, rec_init
     try:
         with tempfile.TemporaryDirectory() as tmp:
             res = run_control(sim.arm, sim.base, ctrl, "tracking", "circle:r=0.05", seconds, tmp)
     finally:
-        loop._Cycle.__init__, loop._Recorder.__init__ = cycle_init, recorder_init
+        Cycle.__init__, Recorder.__init__ = cycle_init, recorder_init
     tm = res.timing
     print(
         f"profile of one lock-step cycle, mobile tracking + push, {seconds:g} s "
@@ -434,7 +436,7 @@ def main() -> None:
     if args.core is not None:
         os.sched_setaffinity(0, {args.core})
     params, truth = calibrated(args.calibration)
-    params = arm_params(params, ARM)
+    params = checked_arm_params(params, ARM)
     result: dict = {"load": load()}
     if not args.no_lockstep:
         result["lockstep"] = lockstep(params, truth, args.repeats)

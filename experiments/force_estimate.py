@@ -33,10 +33,12 @@ import numpy as np  # noqa: E402
 from paper_common import ramped_push  # noqa: E402
 
 from jaxcomp.control import ImpedanceGains, make_impedance_controller  # noqa: E402
-from jaxcomp.control.impedance import live_gains  # noqa: E402
-from jaxcomp.control.loop import arm_model, arm_params, run_control  # noqa: E402
+from jaxcomp.control.impedance_io import live_gains  # noqa: E402
+from jaxcomp.control.loop import run_control  # noqa: E402
+from jaxcomp.control.mount import arm_model  # noqa: E402
 from jaxcomp.control.run_link import RunLink, Tuning  # noqa: E402
 from jaxcomp.hardware import Simulator, TrueRobot  # noqa: E402
+from jaxcomp.plausibility import checked_arm_params  # noqa: E402
 from jaxcomp.robot import load_robot  # noqa: E402
 
 MOBILE = load_robot("mobile_gen3_lite")
@@ -102,7 +104,8 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     params = identified_params() if args.identified else TRUTH.params
-    controller = make_impedance_controller(ARM, arm_params(params, ARM), ImpedanceGains.tracking())
+    checked = checked_arm_params(params, ARM)
+    controller = make_impedance_controller(ARM, checked, ImpedanceGains.tracking())
     controller.compile()
     print(f"params: {'identified (default plan, joint fit)' if args.identified else 'true'}")
     print("| scenario | push (N) | estimate (N) | error | band (N) | F within est. +- band |")

@@ -34,12 +34,12 @@ if str(HERE) not in sys.path:
 
 
 from jaxcomp.control import ImpedanceGains  # noqa: E402
-from jaxcomp.control.loop import arm_params  # noqa: E402
 from jaxcomp.hardware import Simulator, TrueRobot  # noqa: E402
 from jaxcomp.identify import fit  # noqa: E402
 from jaxcomp.identify.plan import CalibrationPlan  # noqa: E402
 from jaxcomp.identify.plan_design import default_plan  # noqa: E402
 from jaxcomp.identify.recorder import record  # noqa: E402
+from jaxcomp.plausibility import checked_arm_params  # noqa: E402
 from jaxcomp.recording import Recording  # noqa: E402
 from jaxcomp.robot import Robot, load_robot  # noqa: E402
 from jaxcomp.robot_params import RobotParams, json_ready, write_json_atomic  # noqa: E402
@@ -127,7 +127,7 @@ def calibrated(args: argparse.Namespace, out: Path) -> tuple[RobotParams, TrueRo
         print(f"calibrating the simulated arm: {len(plan.sweeps)} sweeps, {plan.duration():.0f} s")
         params = fit(record_calibration(truth, plan))
         print(f"  recorded and fitted in {time.perf_counter() - start:.0f} s")
-    params = arm_params(params, ARM)
+    params = checked_arm_params(params, ARM).params
     params.save(out / "params.json")
     truth.save(out / "truth.json")
     return params, truth

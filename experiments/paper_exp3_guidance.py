@@ -57,7 +57,9 @@ from paper_common import (
 from jaxcomp.control import make_impedance_controller
 from jaxcomp.control.gains import BaseGains
 from jaxcomp.control.impedance import ImpedanceController
-from jaxcomp.control.loop import ArmMount, ControlResult, run_control
+from jaxcomp.control.loop import run_control
+from jaxcomp.control.mount import ArmMount
+from jaxcomp.control.run_result import ControlResult
 from jaxcomp.control.trajectory import parse_trajectory
 from jaxcomp.hardware import TrueRobot
 from jaxcomp.recording import Recording

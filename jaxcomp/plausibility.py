@@ -16,16 +16,23 @@ error that names the joint or link, the value and the bound (``InputError``):
 - coverage: every current-controlled joint swept in both directions (``MIN_SAMPLES`` samples
   each) in at least one of the recordings fitted together, so that its friction can be told
   from its gravity torque.
+
+Params on their way to the controller are checked here once (``checked_arm_params``: renamed
+for the arm-alone model when they were identified on the mobile manipulator, then
+``RobotParams.check`` and the bounds above); the ``CheckedParams`` it returns say so, and the
+controller takes them without checking them again.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 
 from jaxcomp.errors import InputError
-from jaxcomp.params import gyration_radii
+from jaxcomp.params import InertialParams, gyration_radii
 from jaxcomp.recording import Recording
 from jaxcomp.robot import Robot
 from jaxcomp.robot_params import RobotParams, arm_joint_indices, arm_joint_names, current_limits
@@ -49,9 +56,16 @@ MIN_SAMPLES = 20
 
 
 def stated_scale(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
-    """((n,) A/(N m), (n,) bool): each current-controlled joint's ratio scale and whether the
-    model states it: its ``jaxcomp_nominal_ratio``, else its ``jaxcomp_current_limit`` over
-    its effort limit (both finite), else unstated (scale 1 A/(N m))."""
+    """Each current-controlled joint's ratio scale and whether the model states it: its
+    ``jaxcomp_nominal_ratio``, else its ``jaxcomp_current_limit`` over its effort limit (both
+    finite), else unstated (scale 1 A/(N m)).
+
+    Args:
+        robot: the model.
+
+    Returns:
+        (scale (n,) A/(N m), stated (n,) bool).
+    """
     limits = current_limits(robot)
     effort = robot.effort_limits[arm_joint_indices(robot)]
     nominal = robot.joint_numeric("jaxcomp_nominal_ratio")
@@ -66,8 +80,16 @@ def stated_scale(robot: Robot) -> tuple[np.ndarray, np.ndarray]:
 
 
 def params_problems(params: RobotParams, robot: Robot) -> list[str]:
-    """What in ``params`` (already ``check``-ed against ``robot``) is physically implausible,
-    one sentence each; empty when nothing is."""
+    """What in ``params`` is physically implausible (the module's bounds).
+
+    Args:
+        params: params already ``check``-ed against ``robot`` (ratio A/(N m), friction A, COM
+            offsets m, link frame).
+        robot: the model they are for.
+
+    Returns:
+        One sentence per problem; empty when nothing is.
+    """
     names = arm_joint_names(robot)
     out = []
     lo, hi = RATIO_RANGE
@@ -103,20 +125,96 @@ def params_problems(params: RobotParams, robot: Robot) -> list[str]:
 
 def check_params(params: RobotParams, robot: Robot, source: str = "the params") -> RobotParams:
     """``params`` checked against ``robot`` (``RobotParams.check``) and for plausibility
-    (``params_problems``); one InputError naming every problem and ``source``."""
-    problems = params_problems(params.check(robot), robot)
+    (``params_problems``).
+
+    Args:
+        params: the params.
+        robot: the model they are for.
+        source: what they are, for the error ("the params in FILE").
+
+    Returns:
+        ``params``.
+
+    Raises:
+        InputError: one, naming every problem and ``source``.
+    """
+    _refuse(params_problems(params.check(robot), robot), robot, source)
+    return params
+
+
+class CheckedParams(NamedTuple):
+    """Params that passed ``RobotParams.check`` and the plausibility bounds for an arm-alone
+    model (made by ``checked_arm_params``; the controller takes them as they are).
+
+    Attributes:
+        params: the params, named for the arm-alone model (``params.model``): ratio (n,)
+            A/(N m), friction (n,) A, COM offsets m (link frame).
+        inertial: that model's inertials with the COM offsets applied
+            (``RobotParams.inertial_params``): mass (nb,) kg, com (nb, 3) m, inertia
+            (nb, 3, 3) kg m^2, link frames.
+    """
+
+    params: RobotParams
+    inertial: InertialParams
+
+
+def checked_arm_params(
+    params: RobotParams, arm: Robot, robot: Robot | None = None, file: str | None = None
+) -> CheckedParams:
+    """``params`` for the arm-alone model ``arm``, checked once on their way to the controller.
+
+    Params that name another model (e.g. the mobile manipulator they were identified on) are
+    renamed for ``arm`` (same joints and links: checked), then checked against it
+    (``RobotParams.check``) and for plausibility (``params_problems``).
+
+    Args:
+        params: identified (or nominal) params.
+        arm: the arm-alone model the controller works in (``control.mount.arm_model``).
+        robot: the whole model that carries the arm (the mobile manipulator, or ``arm``
+            itself); when given, params that name neither it nor ``arm`` (by name or by file,
+            as a fit names its recording's model) are refused.
+        file: the params file, named in the errors (None: "the params").
+
+    Returns:
+        The ``CheckedParams``.
+
+    Raises:
+        InputError: params for another model, not fitting ``arm``, or implausible for it.
+    """
+    if robot is not None:
+        names = {r.name for r in (robot, arm)} | {r.reference for r in (robot, arm)}
+        if params.model not in names:
+            where = f"{file}: " if file is not None else ""
+            raise InputError(
+                f"{where}the params are for model {params.model!r}, the robot is {robot.name!r}"
+            )
+    if params.model != arm.name:
+        params = replace(params, model=arm.name)
+    inertial = params.inertial_params(arm)  # RobotParams.check, then the COM offsets applied
+    source = f"the params in {file}" if file is not None else "the params"
+    _refuse(params_problems(params, arm), arm, source)
+    return CheckedParams(params, inertial)
+
+
+def _refuse(problems: list[str], robot: Robot, source: str) -> None:
+    """One InputError naming every problem of the params ``source`` for ``robot``, if any."""
     if problems:
         raise InputError(
             f"{source} are implausible for {robot.name}: {'; '.join(problems)} (a wrong robot, "
             "a current in mA, or a failed calibration?)"
         )
-    return params
 
 
 def recording_problems(recordings: Sequence[Recording], robot: Robot | None = None) -> list[str]:
-    """What makes ``recordings`` (of one robot, to be fitted together) implausible or
-    unusable, one sentence each; empty when nothing does. ``robot``: their robot
-    (``Recording.robot()``) when the caller holds it already."""
+    """What makes ``recordings`` implausible or unusable (currents, coverage).
+
+    Args:
+        recordings: recordings of one robot, to be fitted together (current A).
+        robot: their robot (``Recording.robot()``) when the caller holds it already.
+
+    Returns:
+        One sentence per problem; empty when nothing is.
+    """
     out = []
     robot = recordings[0].robot() if robot is None else robot
     names = arm_joint_names(robot)
@@ -165,7 +263,14 @@ def recording_problems(recordings: Sequence[Recording], robot: Robot | None = No
 
 
 def check_recordings(recordings: Sequence[Recording]) -> None:
-    """One InputError naming every problem of ``recordings`` (``recording_problems``)."""
+    """Refuse recordings that cannot be fitted.
+
+    Args:
+        recordings: recordings of one robot, to be fitted together.
+
+    Raises:
+        InputError: one, naming every problem (``recording_problems``).
+    """
     problems = recording_problems(recordings)
     if problems:
         raise InputError("the recordings cannot be fitted: " + "; ".join(problems))

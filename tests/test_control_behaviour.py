@@ -19,7 +19,8 @@ import pytest
 from synthetic import with_noise
 
 from jaxcomp.control import ImpedanceGains, make_impedance_controller
-from jaxcomp.control.loop import ArmMount, arm_model, run_control
+from jaxcomp.control.loop import run_control
+from jaxcomp.control.mount import ArmMount, arm_model
 from jaxcomp.hardware import Simulator, TrueRobot
 from jaxcomp.identify import joint_fit
 from jaxcomp.robot import load_robot

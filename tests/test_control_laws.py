@@ -20,7 +20,7 @@ from jaxcomp.control import (
     make_impedance_controller,
     make_velocity_controller,
 )
-from jaxcomp.control.impedance import limit_current
+from jaxcomp.control.impedance_terms import limit_current
 from jaxcomp.current import friction_current
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.mecanum import TwistLimits

@@ -26,23 +26,20 @@ import pytest
 from click.testing import CliRunner
 
 from jaxcomp.cli import main as cli_main
-from jaxcomp.cli.control import _target_marker, parse_push
+from jaxcomp.cli.control import parse_push
 from jaxcomp.cli.group import cli
+from jaxcomp.cli.robot_session import target_marker
 from jaxcomp.control import (
     ImpedanceGains,
-    loop,
     make_impedance_controller,
     make_velocity_controller,
 )
-from jaxcomp.control.impedance import live_gains
-from jaxcomp.control.loop import (
-    ArmMount,
-    arm_model,
-    arm_params,
-    default_max_error,
-    run_control,
-)
+from jaxcomp.control.cycle import Cycle
+from jaxcomp.control.impedance_io import live_gains
+from jaxcomp.control.loop import run_control
+from jaxcomp.control.mount import ArmMount, arm_model
 from jaxcomp.control.run_link import RunLink, Tuning
+from jaxcomp.control.run_setup import default_max_error
 from jaxcomp.control.timing import CycleTimer
 from jaxcomp.control.trajectory import Trajectory, parse_trajectory
 from jaxcomp.control.watchdog import Watchdog, WatchdogTrip
@@ -57,6 +54,7 @@ from jaxcomp.hardware import (
     Simulator,
     TrueRobot,
 )
+from jaxcomp.plausibility import checked_arm_params
 from jaxcomp.recording import load_recording
 from jaxcomp.robot import load_robot
 from jaxcomp.robot_params import RobotParams
@@ -88,7 +86,7 @@ def _ramped_push(sim: Simulator, start: float, length: float, force) -> float:
 @pytest.fixture(scope="module")
 def controller():
     gains = ImpedanceGains(stiffness=K, damping=D, posture=tuple(ARM.pose("home")))
-    ctrl = make_impedance_controller(ARM, arm_params(_truth().params, ARM), gains)
+    ctrl = make_impedance_controller(ARM, checked_arm_params(_truth().params, ARM), gains)
     ctrl.compile()
     return ctrl
 
@@ -475,7 +473,7 @@ def test_cycle_frames_match_arm_mount():
     law = SimpleNamespace(target=np.zeros(9))
     for guidance in (True, False):
         args = (None, traj, 0.0, None, None, mount, guidance, np.zeros(3), None, True)
-        work = loop._Cycle(law, *args)
+        work = Cycle(law, *args)
         for _ in range(5):
             pose, twist, t = rng.uniform(-1, 1, 3), rng.uniform(-0.5, 0.5, 3), rng.uniform(0, 9)
             tb, tw, c, s, ox, oy = work.targets(t, *pose, *twist, True)
@@ -605,10 +603,10 @@ def test_cli_guidance_with_a_params_file(tmp_path):
 
 def test_viewer_target_marker():
     sim = Simulator(ARM)
-    assert _target_marker(sim) is None  # headless: no viewer, no hook
+    assert target_marker(sim) is None  # headless: no viewer, no hook
     scene = mujoco.MjvScene(sim.model, maxgeom=4)
     fake = SimpleNamespace(viewer=SimpleNamespace(lock=contextlib.nullcontext, user_scn=scene))
-    hook = _target_marker(fake)
+    hook = target_marker(fake)
     hook(20, None, None, np.array([0.1, 0.2, 0.3]))
     assert scene.ngeom == 1
     np.testing.assert_allclose(scene.geoms[0].pos, [0.1, 0.2, 0.3])

@@ -19,10 +19,12 @@ from jaxcomp.control.external_force import (
     model_current,
     torque_to_force,
 )
-from jaxcomp.control.impedance import Diagnostics, live_gains
-from jaxcomp.control.loop import arm_model, arm_params, run_control
+from jaxcomp.control.impedance_io import Diagnostics, live_gains
+from jaxcomp.control.loop import run_control
+from jaxcomp.control.mount import arm_model
 from jaxcomp.control.run_link import RunLink, Tuning
 from jaxcomp.hardware import Simulator, TrueRobot
+from jaxcomp.plausibility import checked_arm_params
 from jaxcomp.robot import load_robot
 
 MOBILE = load_robot("mobile_gen3_lite")
@@ -41,7 +43,9 @@ def _ramped_push(sim: Simulator, force) -> float:
 
 @pytest.fixture(scope="module")
 def controller():
-    ctrl = make_impedance_controller(ARM, arm_params(TRUTH.params, ARM), ImpedanceGains.tracking())
+    ctrl = make_impedance_controller(
+        ARM, checked_arm_params(TRUTH.params, ARM), ImpedanceGains.tracking()
+    )
     ctrl.compile()
     return ctrl
 

@@ -12,12 +12,18 @@ import zipfile
 import numpy as np
 import pytest
 import synthetic
+from click.testing import CliRunner
 from odd_arms import serial_arm
 
 import jaxcomp
+from jaxcomp import plausibility
 from jaxcomp.cli import main as cli_main
+from jaxcomp.cli.group import cli
+from jaxcomp.control import impedance, loop
 from jaxcomp.control.impedance import make_impedance_controller
+from jaxcomp.control.run_result import ControlResult
 from jaxcomp.errors import InputError
+from jaxcomp.hardware import TrueRobot
 from jaxcomp.params import gyration_radii
 from jaxcomp.plausibility import (
     COM_MIN,
@@ -26,7 +32,9 @@ from jaxcomp.plausibility import (
     MIN_SAMPLES,
     RATIO_RANGE,
     SCALE_FACTOR,
+    CheckedParams,
     check_params,
+    checked_arm_params,
     params_problems,
     recording_problems,
     stated_scale,
@@ -114,6 +122,73 @@ def test_the_controller_refuses_implausible_params_before_it_is_built():
 
 def robot_ratio(robot):
     return RobotParams.nominal(robot).ratio
+
+
+def _count_checks(monkeypatch, method: str) -> list[tuple[str, str]]:
+    """The (check, model) calls of ``RobotParams.check`` ("check") and of the plausibility
+    bounds ("plausibility") on params whose ``method`` is ``method``, from now on."""
+    calls = []
+    check, problems = RobotParams.check, plausibility.params_problems
+
+    def counted_check(self, robot):
+        if self.method == method:
+            calls.append(("check", robot.name))
+        return check(self, robot)
+
+    def counted_problems(params, robot):
+        if params.method == method:
+            calls.append(("plausibility", robot.name))
+        return problems(params, robot)
+
+    monkeypatch.setattr(RobotParams, "check", counted_check)
+    monkeypatch.setattr(plausibility, "params_problems", counted_problems)
+    return calls
+
+
+def test_params_are_checked_once_on_their_way_to_the_controller(tmp_path, monkeypatch):
+    """`jaxcomp control --params FILE` on the simulated mobile Gen3 Lite: the file's params
+    (identified on the mobile model) are renamed for the arm-alone model, checked against it
+    and bounded once each, and the controller takes them as they are."""
+    mobile = jaxcomp.load_robot("mobile_gen3_lite")
+    params = dataclasses.replace(TrueRobot.draw(mobile, 3).params, method="under test")
+    path = params.save(tmp_path / "params.json")
+    calls = _count_checks(monkeypatch, "under test")
+    built = []
+
+    def no_run(arm, base, controller, *args, **kwargs):  # the controller as the loop gets it
+        built.append(controller)
+        return ControlResult("completed", "not run")
+
+    monkeypatch.setattr(impedance.ImpedanceController, "compile", lambda self, step=False: 0.0)
+    monkeypatch.setattr(loop, "run_control", no_run)
+    args = ["control", "--params", str(path), "--out", str(tmp_path / "run")]
+    out = CliRunner().invoke(cli, args)
+    assert out.exit_code == 0, out.output + repr(out.exception)
+    assert calls == [("check", "gen3_lite"), ("plausibility", "gen3_lite")]
+    (controller,) = built
+    assert controller.params.model == "gen3_lite" and controller.params.method == "under test"
+    np.testing.assert_array_equal(controller.resolved.ratio, params.ratio)
+
+
+def test_the_controller_takes_checked_params_as_they_are(monkeypatch):
+    """Checked params pass the controller's own guard (model, shapes, finite numbers) without
+    a second check; params it was not given checked it checks itself."""
+    robot = jaxcomp.load_robot("gen3_lite")
+    truth = dataclasses.replace(_truth(robot, 0), method="under test")
+    checked = checked_arm_params(truth, robot)
+    calls = _count_checks(monkeypatch, "under test")
+    make_impedance_controller(robot, checked)
+    assert calls == []
+    make_impedance_controller(robot, truth)
+    assert calls == [("check", "gen3_lite"), ("plausibility", "gen3_lite")]
+    other = CheckedParams(dataclasses.replace(checked.params, model="wx250s"), checked.inertial)
+    with pytest.raises(InputError, match="params are for model 'wx250s', the robot is 'gen3_lite'"):
+        make_impedance_controller(robot, other)
+    nan = checked.inertial._replace(mass=np.full_like(checked.inertial.mass, np.nan))
+    with pytest.raises(InputError, match="NaN or inf"):
+        make_impedance_controller(robot, checked._replace(inertial=nan))
+    with pytest.raises(InputError, match="the robot is 'wx250s'"):  # the arm's own model only
+        checked_arm_params(truth, jaxcomp.load_robot("wx250s"), jaxcomp.load_robot("wx250s"))
 
 
 # ------------------------------------------------------------------- recordings and the fit

@@ -5,7 +5,6 @@ from __future__ import annotations
 import click
 
 from jaxcomp.cli.console_options import page_options
-from jaxcomp.cli.control import DEFAULT_MODEL
 from jaxcomp.cli.group import cli
 from jaxcomp.cli.model_options import model_options
 from jaxcomp.cli.robot_options import (
@@ -15,6 +14,7 @@ from jaxcomp.cli.robot_options import (
     params_option,
     rt_priority_option,
 )
+from jaxcomp.cli.robot_session import DEFAULT_MODEL
 
 
 @cli.command()
@@ -100,21 +100,21 @@ def _console(
 
     configure_jax_for_control()
 
-    from jaxcomp.cli.control import (
-        _chosen_joints,
+    from jaxcomp.cli.robot_session import (
         check_kortex_options,
+        chosen_joints,
         close_robot,
         kortex_params,
         open_robot,
     )
     from jaxcomp.console.operator import Operator
     from jaxcomp.control.impedance import make_impedance_controller
-    from jaxcomp.control.loop import arm_model
+    from jaxcomp.control.mount import arm_model
     from jaxcomp.control.presets import impedance_gains
     from jaxcomp.robot_params import RobotParams
 
     params = RobotParams.load(params_file) if params_file is not None else None
-    chosen = _chosen_joints(joints, params, params_file)
+    chosen = chosen_joints(joints, params, params_file)
 
     def make_controller(arm_robot, checked):
         controller = make_impedance_controller(
@@ -127,8 +127,8 @@ def _console(
     controller = None
     if backend == "kortex":
         check_kortex_options(model, joints, site)
-        gen3, checked = kortex_params(params, params_file)
-        controller = make_controller(gen3, checked)
+        gen3, params = kortex_params(params, params_file)  # checked before the arm is opened
+        controller = make_controller(gen3, params)
     opened = None
     link = None
     try:

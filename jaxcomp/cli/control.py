@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
 
 import click
 
 from jaxcomp.cli.console_options import console_options
 from jaxcomp.cli.group import cli
-from jaxcomp.cli.kortex_backend import open_kortex_arm
-from jaxcomp.cli.model_options import joint_names, model_options
+from jaxcomp.cli.model_options import model_options
 from jaxcomp.cli.robot_options import (
     backend_option,
     gains_option,
@@ -18,11 +16,10 @@ from jaxcomp.cli.robot_options import (
     params_option,
     rt_priority_option,
 )
-from jaxcomp.errors import FileError, InputError, ModelError
+from jaxcomp.cli.robot_session import DEFAULT_MODEL
+from jaxcomp.errors import FileError, InputError
 
-#: The simulated robot when --model is not given: the Gen3 Lite on its Dingo-O base.
-DEFAULT_MODEL = "mobile_gen3_lite"
-#: What an earlier run left in --out: ``control.loop.RECORDING`` and its part files.
+#: What an earlier run left in --out: ``control.run_recording.RECORDING`` and its part files.
 _EARLIER_RUN = ("recording.npz", "recording.npz.parts")
 
 _TRAJ_HELP = (
@@ -37,7 +34,17 @@ _TRAJ_HELP = (
 
 
 def parse_push(text: str) -> tuple[float, float, tuple[float, float, float]]:
-    """'START,DURATION,FX,FY,FZ' (s, s, N world) -> (start, duration, force)."""
+    """Parse a --push.
+
+    Args:
+        text: 'START,DURATION,FX,FY,FZ' (s, s, N, N, N; world frame).
+
+    Returns:
+        (start s, duration s, force (fx, fy, fz) N, world frame).
+
+    Raises:
+        InputError: not five finite numbers, a negative start or a duration not above 0.
+    """
     parts = [p.strip() for p in text.split(",")]
     try:
         values = [float(p) for p in parts]
@@ -51,38 +58,6 @@ def parse_push(text: str) -> tuple[float, float, tuple[float, float, float]]:
     if start < 0 or duration <= 0:
         raise InputError(f"--push {text!r}: START must be >= 0 s and DURATION > 0 s")
     return start, duration, (fx, fy, fz)
-
-
-def _model_name(robot) -> str:
-    """The recording's ``model`` field: the built-in name, else the model file's path."""
-    return robot.reference
-
-
-def _target_marker(sim):
-    """An ``on_cycle`` hook drawing the target as a red sphere in the simulator's viewer
-    (about 50 Hz), or None without a viewer. Drawing problems never stop the loop."""
-    viewer = sim.viewer
-    if viewer is None:
-        return None
-    import mujoco
-    import numpy as np
-
-    size, rgba, eye = np.array([0.015, 0.0, 0.0]), np.array([0.9, 0.1, 0.1, 0.8]), np.eye(3)
-
-    def on_cycle(k, state, command, target) -> None:
-        if k % 20:
-            return
-        try:
-            with viewer.lock():
-                scn = viewer.user_scn
-                mujoco.mjv_initGeom(
-                    scn.geoms[0], mujoco.mjtGeom.mjGEOM_SPHERE, size, target, eye.ravel(), rgba
-                )
-                scn.ngeom = 1
-        except Exception:  # noqa: BLE001, S110 - a marker must never end a run
-            pass
-
-    return on_cycle
 
 
 @cli.command()
@@ -290,28 +265,26 @@ def _control(
     # each controller step on the calling thread, single-threaded kernels: no thread hand-off
     configure_jax_for_control()
 
-    from jaxcomp.control.impedance import make_impedance_controller
-    from jaxcomp.control.loop import ArmMount, arm_model, run_control
-    from jaxcomp.control.presets import check_live_gains, impedance_gains
+    from jaxcomp.cli.robot_session import (
+        attach_console,
+        check_kortex_options,
+        checked_live_gains,
+        chosen_joints,
+        close_robot,
+        kortex_params,
+        open_robot,
+        target_marker,
+    )
+    from jaxcomp.control.loop import run_control
+    from jaxcomp.control.mount import ArmMount, arm_model
     from jaxcomp.control.run_link import RunLink, Tuning
     from jaxcomp.control.trajectory import parse_trajectory
-    from jaxcomp.control.velocity import make_velocity_controller
     from jaxcomp.robot_params import RobotParams
 
     spec = parse_trajectory(trajectory)
     push_list = [parse_push(p) for p in pushes]
-    if duration is not None and not (math.isfinite(duration) and duration > 0):
-        raise InputError(f"--duration must be a positive number of s, got {duration}")
-    if max_error is not None and not max_error > 0:
-        raise InputError(f"--max-error must be > 0 m (inf: never), got {max_error}")
-    if not (math.isfinite(max_error_time) and max_error_time > 0):
-        raise InputError(f"--max-error-time must be a positive number of s, got {max_error_time}")
-    changes = {}
-    if stiffness is not None:
-        changes["stiffness"] = stiffness
-    if damping is not None:
-        changes["damping"] = damping
-
+    _check_run_options(duration, max_error, max_error_time)
+    changes = {k: v for k, v in (("stiffness", stiffness), ("damping", damping)) if v is not None}
     if backend == "kortex":
         if push_list:
             raise InputError("--push acts on the simulator only")
@@ -322,28 +295,18 @@ def _control(
     elif realtime is None:
         realtime = viewer
     params = RobotParams.load(params_file) if params_file is not None else None
-    chosen = _chosen_joints(joints, params, params_file)
+    chosen = chosen_joints(joints, params, params_file)
     _refuse_earlier_run(out_dir, overwrite)
 
-    def make_controller(arm_robot, params):
-        if law == "velocity":
-            controller = make_velocity_controller(arm_robot)
-        else:
-            gains = impedance_gains(arm_robot, preset, **changes)
-            check_live_gains(arm_robot, gains.stiffness[0], gains.damping[0])
-            controller = make_impedance_controller(arm_robot, params, gains)
-            click.echo(_describe_gains(preset, controller), err=True)
-        click.echo(f"compiling the controller for {arm_robot.name} ...", err=True)
-        if hasattr(controller, "compile"):
-            controller.compile()
-        return controller
+    def make_controller(arm_robot, checked):
+        return _make_controller(law, preset, changes, arm_robot, checked)
 
     controller = None
     if backend == "kortex":
         # the params and the controller are checked (and compiled) before the arm is
         # touched: nothing implausible reaches it, and no compile runs while it servos
-        gen3, checked = kortex_params(params, params_file)
-        controller = make_controller(gen3, checked)
+        gen3, params = kortex_params(params, params_file)
+        controller = make_controller(gen3, params)
 
     opened = None
     try:
@@ -368,7 +331,7 @@ def _control(
             raise InputError("--no-friction-compensation: for the impedance controller only")
         link = RunLink(tuning=tuning)
         mount = ArmMount.from_model(robot) if base is not None else ArmMount()
-        marker = _target_marker(sim) if sim is not None else None
+        marker = target_marker(sim) if sim is not None else None
         page = None
         if console:
             page = attach_console(opened, controller, link, port, host, on_disconnect)
@@ -384,7 +347,7 @@ def _control(
                     out_dir,
                     realtime,
                     mount=mount,
-                    model=_model_name(robot),
+                    model=robot.reference,  # the built-in name, else the model file's path
                     on_cycle=marker,
                     max_error=max_error,
                     max_error_time=max_error_time,
@@ -405,174 +368,35 @@ def _control(
         raise SystemExit(1)
 
 
-class Opened(NamedTuple):
-    """The robot a command drives: ``arm``, ``base`` (None: none), ``sim`` (the
-    ``Simulator``, None on the real robot), ``robot`` (the whole model: the mobile one with a
-    base) and ``params`` (checked, for the arm-alone model; None: nominal)."""
-
-    arm: Any
-    base: Any
-    sim: Any
-    robot: Any
-    params: Any
+def _check_run_options(duration: float | None, max_error: float | None, max_error_time: float):
+    """InputError for a --duration, --max-error or --max-error-time out of range."""
+    if duration is not None and not (math.isfinite(duration) and duration > 0):
+        raise InputError(f"--duration must be a positive number of s, got {duration}")
+    if max_error is not None and not max_error > 0:
+        raise InputError(f"--max-error must be > 0 m (inf: never), got {max_error}")
+    if not (math.isfinite(max_error_time) and max_error_time > 0):
+        raise InputError(f"--max-error-time must be a positive number of s, got {max_error_time}")
 
 
-def check_kortex_options(model: str, joints, site) -> None:
-    """InputError for the simulator's model options given with ``--robot kortex``."""
-    options = (("--model", model != DEFAULT_MODEL), ("--joints", joints), ("--site", site))
-    given = [name for name, value in options if value]
-    if given:
-        raise InputError(
-            f"{', '.join(given)}: for the simulator only (--robot kortex drives the Gen3 Lite)"
-        )
+def _make_controller(law: str, preset: str, changes: dict, arm_robot, checked):
+    """The run's controller on the arm-alone model, compiled: the velocity controller, or the
+    impedance controller with the ``preset`` gains and the option's ``changes`` (checked as
+    live gains are) and the ``checked`` params (``CheckedParams``, None: nominal)."""
+    from jaxcomp.control.impedance import make_impedance_controller
+    from jaxcomp.control.presets import check_live_gains, impedance_gains
+    from jaxcomp.control.velocity import make_velocity_controller
 
-
-def kortex_params(params, params_file: str | None):
-    """(the Gen3 Lite's model, ``params`` checked for it) before the real arm is touched."""
-    from jaxcomp.control.loop import mobile_model_name
-    from jaxcomp.robot import load_robot
-
-    gen3 = load_robot("gen3_lite")
-    mobile = load_robot(mobile_model_name(gen3))
-    return gen3, None if params is None else _arm_params(params, params_file, mobile, gen3)
-
-
-def open_robot(
-    backend: str,
-    model: str,
-    chosen,
-    joints,
-    site,
-    params,
-    params_file,
-    seed: int,
-    viewer: bool,
-    ip: str,
-) -> Opened:
-    """The simulated ``model`` (reduced to the ``chosen`` joints; its arm at its 'home'
-    pose) or the real Gen3 Lite at ``ip`` with its Dingo-O base when ROS 2 is there; the
-    params checked against it (``_arm_params``)."""
-    from jaxcomp.control.loop import arm_model, mobile_model_name
-    from jaxcomp.robot import load_robot
-    from jaxcomp.robot_params import arm_joint_indices
-
-    if backend == "sim":
-        from jaxcomp.hardware import Simulator
-
-        from_params = params if joints is None else None
-        robot = _load_model(model, chosen, site, from_params, params_file)
-        if not len(arm_joint_indices(robot)):
-            raise ModelError(f"{robot.name} has no arm joints: nothing to control")
-        if params is not None:  # checked before anything is built
-            params = _arm_params(params, params_file, robot, arm_model(robot))
-        sim = Simulator(robot, seed=seed, viewer=viewer, initial_pose="home")
-        return Opened(sim.arm, sim.base if sim.has_base else None, sim, robot, params)
-    from jaxcomp.hardware import DingoBase
-
-    # the loop paces the cycles itself (absolute 1 kHz deadlines)
-    arm = open_kortex_arm(ip, robot="gen3_lite", pace=False)
-    try:
-        base = DingoBase()
-    except ImportError as exc:
-        click.echo(f"no base: {exc}", err=True)
-        base = None
-    robot = load_robot("gen3_lite")
-    if base is not None:
-        robot = load_robot(mobile_model_name(robot))
-    if params is not None:
-        params = _arm_params(params, params_file, robot, arm_model(robot))
-    return Opened(arm, base, None, robot, params)
-
-
-def close_robot(opened: Opened) -> None:
-    """Arm to position mode, base stopped, connections closed (the simulator's viewer too)."""
-    if opened.sim is not None:
-        opened.sim.close()
-        return
-    for part in (opened.arm, opened.base):
-        if part is not None:
-            part.close()
-
-
-def checked_live_gains(arm_robot, gains, stiffness, damping, friction_compensation: bool):
-    """The live gains of a run (``impedance.live_gains``): ``stiffness`` N/m and ``damping``
-    N s/m (None: ``gains``'), within the arm's safe ranges (``presets.check_live_gains``, the
-    same check for the command line and the console), friction compensation on or off."""
-    from jaxcomp.control.impedance import live_gains
-    from jaxcomp.control.presets import check_live_gains
-
-    k = gains.stiffness[0] if stiffness is None else stiffness
-    d = gains.damping[0] if damping is None else damping
-    k, d = check_live_gains(arm_robot, k, d)
-    return live_gains(k, d, bool(friction_compensation))
-
-
-def attach_console(opened: Opened, controller, link, port: int, host: str, on_lost: str):
-    """The browser console of a ``jaxcomp control`` run (``jaxcomp.console``): it shows the
-    run and takes stop and live gains (checked as --stiffness and --damping are)."""
-    from jaxcomp.console.link import ConsoleLink
-    from jaxcomp.control.loop import arm_model
-    from jaxcomp.control.presets import gain_limits
-    from jaxcomp.robot_params import BASE_JOINTS
-
-    arm_robot = arm_model(opened.robot)
-    live = link.tuning.values if link.tuning is not None else None
-
-    def handler(name: str, args: dict) -> str:
-        if name == "stop":
-            link.stop.set()
-            return "stopping: arm in position mode, base stopped"
-        if name == "gains" and link.tuning is None:
-            raise InputError("the velocity controller has no impedance gains to set")
-        if name == "gains":
-            friction = args.get("friction", True)
-            values = checked_live_gains(
-                arm_robot, controller.gains, args.get("stiffness"), args.get("damping"), friction
-            )
-            link.tuning.set(values)
-            return f"stiffness {values[0]:g} N/m, damping {values[3]:g} N s/m (now)"
-        raise InputError(
-            f"{name}: not while the console is attached to `jaxcomp control` (its options set "
-            "the mode and trajectory; `jaxcomp console` drives the robot from the page)"
-        )
-
-    base_joints = tuple(BASE_JOINTS) if opened.base is not None else ()
-    page = ConsoleLink(
-        opened.robot,
-        tuple(opened.arm.joint_names),
-        base_joints,
-        handler=handler,
-        port=port,
-        host=host,
-        title=f"jaxcomp control: {opened.robot.name}",
-        controls="control",
-        gains=None
-        if live is None
-        else {"stiffness": live[0], "damping": live[3], "friction": bool(live[6])},
-        limits=gain_limits(arm_robot)._asdict(),
-        on_lost=on_lost,
-        on_stop=link.stop.set,
-    )
-    link.monitor = page.feed
-    click.echo(f"console: {page.url}", err=True)
-    page.status(state="running", detail="jaxcomp control", arm_modes="switching")
-    return page
-
-
-def _arm_params(params, params_file: str | None, robot, arm_robot):
-    """``params`` for the arm-alone model ``arm_robot`` of ``robot``, checked as the
-    controller checks them (``plausibility.check_params``); InputError when they name another model
-    (a fit names the model as its recording does: by name or by file) or do not fit."""
-    from jaxcomp.control.loop import arm_params
-
-    names = {r.name for r in (robot, arm_robot)} | {r.reference for r in (robot, arm_robot)}
-    if params.model not in names:
-        raise InputError(
-            f"{params_file}: the params are for model {params.model!r}, the robot is {robot.name!r}"
-        )
-    from jaxcomp.plausibility import check_params
-
-    return check_params(arm_params(params, arm_robot), arm_robot, f"the params in {params_file}")
+    if law == "velocity":
+        controller = make_velocity_controller(arm_robot)
+    else:
+        gains = impedance_gains(arm_robot, preset, **changes)
+        check_live_gains(arm_robot, gains.stiffness[0], gains.damping[0])
+        controller = make_impedance_controller(arm_robot, checked, gains)
+        click.echo(_describe_gains(preset, controller), err=True)
+    click.echo(f"compiling the controller for {arm_robot.name} ...", err=True)
+    if hasattr(controller, "compile"):
+        controller.compile()
+    return controller
 
 
 def _check_pushes(texts, pushes, duration: float) -> None:
@@ -584,37 +408,6 @@ def _check_pushes(texts, pushes, duration: float) -> None:
                 f"--push {text}: starts at {start:g} s, after the run ends at {duration:g} s "
                 "(--duration, else the trajectory's length or 10 s)"
             )
-
-
-def _chosen_joints(text: str | None, params, params_file: str | None) -> list[str] | None:
-    """The current-controlled joints: --joints, else the params file's, else None (the
-    model's own); InputError when both are given and differ."""
-    listed = None if text is None else list(joint_names(text))
-    if listed is not None and not listed:
-        raise InputError(f"--joints {text!r}: expected joint names separated by commas")
-    from_params = list(params.joints) if params is not None and params.joints else None
-    if listed is not None and from_params is not None and listed != from_params:
-        raise InputError(
-            f"--joints {','.join(listed)} differ from the joints of {params_file}: "
-            f"{','.join(from_params)}"
-        )
-    return listed if listed is not None else from_params
-
-
-def _load_model(model: str, joints, site, from_params, params_file):
-    """``load_robot(model, joints=, site=)``; joints taken from the params ``from_params``
-    (None: not from a params file) that do not fit the model are reported against the file."""
-    from jaxcomp.robot import load_robot
-
-    try:
-        return load_robot(model, joints=joints, site=site)
-    except ModelError as exc:
-        if joints is not None and from_params is not None:
-            raise InputError(
-                f"{params_file} is for model {from_params.model!r}, joints {', '.join(joints)}, "
-                f"which do not fit {model}: {exc}"
-            ) from None
-        raise
 
 
 def _describe_gains(preset: str, controller) -> str:

@@ -61,8 +61,8 @@ class Operator:
     """
 
     def __init__(self, arm, base, sim, robot, controller, preset: str, out: Path, realtime=True):
-        from jaxcomp.control.impedance import live_gains
-        from jaxcomp.control.loop import ArmMount, arm_model
+        from jaxcomp.control.impedance_io import live_gains
+        from jaxcomp.control.mount import ArmMount, arm_model
         from jaxcomp.control.presets import gain_limits
         from jaxcomp.control.run_link import Tuning
 
@@ -140,7 +140,7 @@ class Operator:
         raise InputError(f"unknown command {name!r}")
 
     def _live(self, args: dict) -> np.ndarray:
-        from jaxcomp.control.impedance import live_gains
+        from jaxcomp.control.impedance_io import live_gains
         from jaxcomp.control.presets import check_live_gains
 
         k, d = check_live_gains(self.arm_robot, args.get("stiffness"), args.get("damping"))
@@ -385,15 +385,15 @@ class Operator:
         """The joint fit on a thread of its own (the arm holds meanwhile), then the
         controller with the new params (compiled here, swapped in when ready)."""
         from jaxcomp.control.impedance import make_impedance_controller
-        from jaxcomp.control.loop import arm_params
         from jaxcomp.identify import fit as fit_checked
+        from jaxcomp.plausibility import checked_arm_params
 
         try:
             self.status(state="fitting", detail=f"{rec.n_samples} samples")
             params = fit_checked([rec], "jax")
             params.save(out / "params.json")
             controller = make_impedance_controller(
-                self.arm_robot, arm_params(params, self.arm_robot), self.controller.gains
+                self.arm_robot, checked_arm_params(params, self.arm_robot), self.controller.gains
             )
             controller.compile()
             self.controller = controller
@@ -415,9 +415,10 @@ def simulated_operator(
     'home') whose controller knows the true params (demos, tests, benchmarks); the controller
     is built, not compiled (``operator.controller.compile()``)."""
     from jaxcomp.control.impedance import make_impedance_controller
-    from jaxcomp.control.loop import arm_model, arm_params
+    from jaxcomp.control.mount import arm_model
     from jaxcomp.control.presets import impedance_gains
     from jaxcomp.hardware import Simulator, TrueRobot
+    from jaxcomp.plausibility import checked_arm_params
     from jaxcomp.robot import load_robot
 
     robot = load_robot(model)
@@ -425,7 +426,7 @@ def simulated_operator(
     truth = TrueRobot.draw(robot, seed)
     sim = Simulator(robot, truth, seed=seed, initial_pose="home")
     controller = make_impedance_controller(
-        arm, arm_params(truth.params, arm), impedance_gains(arm, preset)
+        arm, checked_arm_params(truth.params, arm), impedance_gains(arm, preset)
     )
     base = sim.base if sim.has_base else None
     return Operator(sim.arm, base, sim, robot, controller, preset, Path(out))
