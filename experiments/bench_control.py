@@ -19,7 +19,13 @@ figure of the quietest moment on a machine other jobs share (the 1-min load aver
 printed). ``--fifo`` runs the benchmark under SCHED_FIFO (when the OS allows it), so that other
 processes cannot preempt it for a time slice (which is what the p99 of a shared machine shows
 otherwise). Targets for the jitted step: median <= 50 us, p99 <= 150 us.
+
+``--vs PYTHON`` compares two versions of jaxcomp side by side in one run: this script runs
+itself in turn under this interpreter and under PYTHON (another environment with another
+jaxcomp installed, e.g. a virtualenv of the previous commit), ``--rounds`` times each, A B A B,
+and prints each variant's median per run and the ratio of the medians (this / other).
 Run: python experiments/bench_control.py [--repeats N] [--block N] [--fifo] [--json FILE]
+     [--vs PYTHON [--rounds R]]
 """
 
 import os
@@ -34,6 +40,9 @@ if hasattr(os, "sched_setaffinity"):  # one core: the first, or $JAXCOMP_BENCH_C
 import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 
 import jax  # noqa: E402
@@ -88,7 +97,13 @@ def main() -> dict:
     parser.add_argument("--block", type=int, default=1000, help="calls per interleaved block")
     parser.add_argument("--json", help="also write the figures to this JSON file")
     parser.add_argument("--fifo", action="store_true", help="run under SCHED_FIFO (priority 50)")
+    parser.add_argument(
+        "--vs", metavar="PYTHON", help="also run under this interpreter (another jaxcomp), in turn"
+    )
+    parser.add_argument("--rounds", type=int, default=3, help="runs of each side with --vs")
     args = parser.parse_args()
+    if args.vs:
+        return side_by_side(args)
     configure_jax_for_control()
     with realtime_priority(50 if args.fifo else None) as fifo:
         return run(args, fifo)
@@ -218,6 +233,50 @@ def run(args, fifo: bool) -> dict:
         f"(compile {compile_s:.2f} s; targets median <= 50 us, p99 <= 150 us: "
         f"{', '.join(verdicts)})"
     )
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(result, fh, indent=2)
+    return result
+
+
+def jaxcomp_source(python: str) -> str:
+    """Where ``python`` imports jaxcomp from (its package folder)."""
+    code = "import os, jaxcomp; print(os.path.dirname(jaxcomp.__file__))"
+    out = subprocess.run([python, "-P", "-c", code], capture_output=True, text=True, check=True)
+    return out.stdout.strip().splitlines()[-1]
+
+
+def side_by_side(args) -> dict:
+    """This script under this interpreter and under ``args.vs``, ``args.rounds`` runs each in
+    turn (A B A B ...); prints each variant's median per run and the ratio of the medians."""
+    sides = {"this": sys.executable, "other": args.vs}
+    sources = {k: jaxcomp_source(py) for k, py in sides.items()}
+    runs: dict[str, list[dict]] = {k: [] for k in sides}
+    flags = ["--repeats", str(args.repeats), "--block", str(args.block)]
+    flags += ["--fifo"] if args.fifo else []
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(args.rounds):
+            for side, python in sides.items():
+                out = os.path.join(tmp, f"{side}{r}.json")
+                subprocess.run([python, __file__, *flags, "--json", out], check=True)
+                with open(out) as fh:
+                    runs[side].append(json.load(fh))
+    variants = list(runs["this"][0]["latency_us"])
+    medians = {
+        side: {v: [run["latency_us"][v]["median"] for run in rs] for v in variants}
+        for side, rs in runs.items()
+    }
+    print(f"\nside by side, {args.rounds} runs each in turn; median us of each run")
+    for side in sides:
+        print(f"  {side}: {sides[side]} (jaxcomp from {sources[side]})")
+    print(f"{'variant':<22}{'this':>26}{'other':>26}{'this/other':>12}")
+    ratios = {}
+    for v in variants:
+        a, b = medians["this"][v], medians["other"][v]
+        ratios[v] = float(np.median(a) / np.median(b))
+        cells = [" ".join(f"{x:.1f}" for x in m) for m in (a, b)]
+        print(f"{v:<22}{cells[0]:>26}{cells[1]:>26}{ratios[v]:>12.3f}")
+    result = {"sides": sides, "sources": sources, "median_us": medians, "ratio": ratios}
     if args.json:
         with open(args.json, "w") as fh:
             json.dump(result, fh, indent=2)
