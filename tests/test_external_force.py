@@ -117,7 +117,7 @@ def test_push_while_tracking_a_circle(controller, tmp_path, force):
     """While the arm tracks a circle (5 cm/s, its joints moving), a push of 10 N: the
     estimate averaged over the push is within 15 % of it (1-2 % here), near zero before.
     (On the mobile manipulator the base carries the end effector round and the arm's joints
-    mostly rest: the estimate then reports a band, see the README.)"""
+    mostly rest: the estimate then reports a band, see docs/console.md.)"""
     force = np.asarray(force)
     sim = Simulator(GEN3_LITE, TRUTH, seed=0)
     release = _ramped_push(sim, force)

@@ -17,7 +17,7 @@ def check(files: tuple[str, ...]) -> None:
     zero; the recordings together must sweep every joint both ways. A params file is checked
     against its model (the file's `model` and `joints`) for physical plausibility: ratios,
     friction losses against the current limits, COM offsets against the links' sizes (see
-    README, "Plausibility"). Prints one line per good file; the first bad one ends in one
+    docs/plausibility.md). Prints one line per good file; the first bad one ends in one
     `error:` line, status 2.
     """
     from jaxcomp.plausibility import check_params, check_recordings
