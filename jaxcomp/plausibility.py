@@ -1,7 +1,7 @@
 """Physical plausibility of recordings and params: what no real current-controlled arm gives.
 
-Each check is one bound, stated here and in docs/plausibility.md. A value outside it is refused with one
-error that names the joint or link, the value and the bound (``InputError``):
+Each check is one bound, stated here and in docs/plausibility.md. A value outside it is refused
+with one error that names the joint or link, the value and the bound (``InputError``):
 
 - ratio (A/(N m)): within ``RATIO_RANGE``; and where the model states its joints' scale (a
   ``jaxcomp_nominal_ratio``, or a ``jaxcomp_current_limit`` with an effort limit: ratio ~
