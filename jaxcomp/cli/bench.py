@@ -28,7 +28,15 @@ from jaxcomp.errors import InputError
 @dataclass(frozen=True)
 class Benchmark:
     """One script of experiments/: what it measures, its arguments in full and --quick runs
-    (``{gpu}`` entries are chosen by whether the machine has a GPU)."""
+    (``{gpu}`` entries are chosen by whether the machine has a GPU).
+
+    Attributes:
+        script: the script's file name in experiments/.
+        measures: what it measures and its targets, one line of the report.
+        full: its arguments for a full run.
+        quick: its arguments for a ``--quick`` run.
+        gpu: its arguments for a full run on a machine with a GPU (None: ``full``).
+    """
 
     script: str
     measures: str
@@ -149,7 +157,15 @@ def _cell(value: object) -> str:
 
 
 def markdown(report: dict) -> str:
-    """The report as markdown: the machine, then one table of figures per benchmark."""
+    """The report as markdown: the machine, then one table of figures per benchmark.
+
+    Args:
+        report: {"machine": ``machine()``, "mode": "quick"|"full", "benchmarks": {name:
+            ``run_benchmark`` entry}}.
+
+    Returns:
+        The markdown text, ending in a newline.
+    """
     m = report["machine"]
     lines = [
         "# jaxcomp benchmarks",
@@ -176,7 +192,19 @@ def markdown(report: dict) -> str:
 def run_benchmark(
     bench: Benchmark, folder: Path, args: list[str], log: Path, timeout: float
 ) -> dict:
-    """Run one script with ``--json``; its figures, or the reason it failed."""
+    """Run one script with ``--json``; its figures, or the reason it failed.
+
+    Args:
+        bench: the benchmark.
+        folder: the experiments/ folder holding its script.
+        args: the script's arguments (without ``--json``).
+        log: file for its stdout and stderr; its figures go to this path with .json.
+        timeout: seconds it may run before it is stopped.
+
+    Returns:
+        {"script", "measures", "args", "seconds": wall time s, "status": "ok" or "failed
+        (why)"}, with "figures" (its JSON) when ok, else "error" (its output's last 15 lines).
+    """
     from jaxcomp.robot_params import write_text_atomic
 
     result_file = log.with_suffix(".json")

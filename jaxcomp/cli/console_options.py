@@ -11,7 +11,14 @@ from jaxcomp.console.link import ON_LOST
 
 
 def page_options(f: Callable) -> Callable:
-    """``--port``, ``--host`` and ``--on-disconnect``."""
+    """``--port``, ``--host`` and ``--on-disconnect``.
+
+    Args:
+        f: the command function.
+
+    Returns:
+        ``f`` with the options.
+    """
     f = click.option(
         "--on-disconnect",
         type=click.Choice(ON_LOST),
@@ -38,7 +45,14 @@ def page_options(f: Callable) -> Callable:
 
 
 def console_options(what: str) -> Callable:
-    """``--console`` (showing ``what``) and ``page_options``."""
+    """``--console`` (showing ``what``) and ``page_options``.
+
+    Args:
+        what: what the console shows, completing the flag's help text.
+
+    Returns:
+        The decorator adding the options.
+    """
 
     def add(f: Callable) -> Callable:
         f = page_options(f)

@@ -7,7 +7,19 @@ from jaxcomp.errors import JaxcompError
 
 def open_kortex_arm(ip: str, **options):
     """``KortexArm(ip, **options)``; kortex_api missing (the error says what to install) or
-    the arm unreachable become a ``JaxcompError`` (the CLI prints one ``error:`` line)."""
+    the arm unreachable become a ``JaxcompError`` (the CLI prints one ``error:`` line).
+
+    Args:
+        ip: the arm's address.
+        **options: ``KortexArm``'s keyword arguments.
+
+    Returns:
+        The open ``KortexArm``.
+
+    Raises:
+        JaxcompError: kortex_api missing, the arm unreachable, or ``KortexArm``'s own
+            (``HardwareFault``).
+    """
     from jaxcomp.hardware import KortexArm
 
     try:

@@ -8,7 +8,15 @@ import click
 
 
 def model_options(default: str, what: str = "Robot model") -> Callable:
-    """Decorator adding ``--model`` (default ``default``), ``--joints`` and ``--site``."""
+    """Decorator adding ``--model`` (default ``default``), ``--joints`` and ``--site``.
+
+    Args:
+        default: the default model, a built-in name or a model file.
+        what: what the model is, starting ``--model``'s help text.
+
+    Returns:
+        The decorator adding the options.
+    """
 
     def add(f: Callable) -> Callable:
         f = click.option(
@@ -38,7 +46,14 @@ def model_options(default: str, what: str = "Robot model") -> Callable:
 
 
 def joint_names(text: str | None) -> tuple[str, ...] | None:
-    """``--joints`` as names (None when not given)."""
+    """``--joints`` as names (None when not given).
+
+    Args:
+        text: --joints, comma-separated names (blanks around and empty names ignored).
+
+    Returns:
+        The names in order, or None.
+    """
     if text is None:
         return None
     return tuple(n.strip() for n in text.split(",") if n.strip())

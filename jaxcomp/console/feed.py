@@ -52,7 +52,16 @@ class FrameLayout:
         return self.slices[name]
 
     def get(self, frame: np.ndarray, name: str):
-        """The quantity ``name`` of ``frame`` (a float for one value, else an array view)."""
+        """The quantity ``name`` of ``frame`` (a float for one value, else an array view).
+
+        Args:
+            frame: (width,) one frame, or (..., width) frames.
+            name: a quantity (``HEAD``, "periods", or a sample's column, e.g. "q"); units as
+                the module doc.
+
+        Returns:
+            A float for a one-number quantity of one frame, else a (..., w) view.
+        """
         part = frame[..., self.slices[name]]
         return float(part[0]) if part.shape[-1] == 1 and part.ndim == 1 else part
 
@@ -76,10 +85,22 @@ class Feed:
 
     # ---- LoopMonitor (control runs, on the loop's thread)
     def started(self, start) -> None:
+        """A control run starts: its timer and phase are taken.
+
+        Args:
+            start: the run's ``control.run_link.MonitorStart``.
+        """
         self._timer, self._count = start.timer, 0
         self._phase = PHASES.get(start.mode, 0.0)
 
     def sample(self, k: int, row: np.ndarray) -> None:
+        """A frame of cycle ``k``: its head, the loop periods (us) since the last frame, and
+        ``row``.
+
+        Args:
+            k: the cycle.
+            row: the cycle's recorded row, in the order of the module doc (t s first).
+        """
         f, lay, timer = self._frame, self.layout, self._timer
         count = timer.count
         periods = np.diff(timer.sends(self._count - 1, count))[-PERIODS:]
@@ -93,13 +114,28 @@ class Feed:
         self.ring.write(f)
 
     def ended(self, result) -> None:
+        """The control run ended: no more frames of it.
+
+        Args:
+            result: its ``ControlResult`` (unused).
+        """
         self._timer = None
 
     # ---- anything else (holding, calibrating): decimated on the wall clock
     def state(self, phase: str, state, base_pose=None, force: bool = False) -> bool:
         """A frame of an ``ArmState`` (t, q, dq, current) and the base's pose (x, y, yaw;
         None: none) in ``phase`` ("idle", "calibrating"), unless one went out less than
-        ``1 / RATE`` s ago (``force``: anyway); returns whether it was written."""
+        ``1 / RATE`` s ago (``force``: anyway); returns whether it was written.
+
+        Args:
+            phase: a key of ``PHASES``.
+            state: the arm's ``ArmState`` (t s, q rad, dq rad/s, current A; (n,) each).
+            base_pose: (3,) the base's (x m, y m, yaw rad) in the world frame; None: none.
+            force: write even if a frame went out less than ``1 / RATE`` s ago.
+
+        Returns:
+            Whether the frame was written.
+        """
         now = time.perf_counter()
         if not force and now - self._wall < 1.0 / RATE:
             return False

@@ -48,6 +48,7 @@ class ConsoleLink:
         port, host: where the page is served (a busy port: the next free one).
         title: the page's title line. controls: "console", "control" or "calibrate"
             (``page.Page``). gains, limits: the initial live gains and their limits.
+            plans: the calibration plans the page offers ("console" controls), the first chosen.
         on_lost: "continue" or "stop" (``ON_LOST``); on_stop: what "stop" calls.
     """
 

@@ -41,7 +41,15 @@ RUN_LIMIT = 3600.0
 
 
 def next_folder(out: Path, prefix: str) -> Path:
-    """``out/<prefix>-NNN``, the first number not taken."""
+    """``out/<prefix>-NNN``, the first number not taken.
+
+    Args:
+        out: the parent folder.
+        prefix: the folders' name, e.g. "run".
+
+    Returns:
+        The folder's path (not created).
+    """
     k = 1
     while (out / f"{prefix}-{k:03d}").exists():
         k += 1
@@ -98,7 +106,20 @@ class Operator:
         on_lost: str = "continue",
     ):
         """Start this operator's page (a ``link.ConsoleLink`` wired to ``handle``; the page
-        going away with ``on_lost`` "stop" stops the active job) and return it."""
+        going away with ``on_lost`` "stop" stops the active job) and return it.
+
+        Args:
+            port: the page's TCP port (busy: the next free one).
+            host: the address it is served on.
+            title: the page's title line ("": the robot's name).
+            on_lost: "continue" or "stop" (``link.ON_LOST``).
+
+        Returns:
+            The ``ConsoleLink`` (its ``url`` the page's).
+
+        Raises:
+            InputError: a bad ``port`` or ``on_lost``, or the page's server did not start.
+        """
         from jaxcomp.console.link import ConsoleLink
         from jaxcomp.robot_params import BASE_JOINTS
 
@@ -121,7 +142,22 @@ class Operator:
     # ----------------------------------------------------------------- commands (link thread)
     def handle(self, name: str, args: dict) -> str | None:
         """Run the page's command ``name`` with ``args`` (validated here, the CLI's way);
-        InputError for a bad one."""
+        InputError for a bad one.
+
+        Args:
+            name: "start", "gains", "stop", "clear_faults" or "calibrate".
+            args: the command's fields: "start": mode ("guidance", "tracking"), trajectory
+                (text, default "static"), stiffness N/m, damping N s/m, friction (bool,
+                compensation on); "gains": stiffness, damping, friction; "calibrate": plan
+                ("short", "default").
+
+        Returns:
+            A line for the page saying what was done.
+
+        Raises:
+            InputError: an unknown command, bad arguments, or one refused now (a
+                calibration or a fit active).
+        """
         if name == "start":
             return self._start(args)
         if name == "gains":
@@ -198,6 +234,11 @@ class Operator:
 
     # ----------------------------------------------------------------- the control thread
     def status(self, **fields) -> None:
+        """Show ``fields`` on the page, when one is attached (``link.ConsoleLink.status``).
+
+        Args:
+            **fields: the status fields, by name, JSON-able.
+        """
         if self.link is not None:
             self.link.status(**fields)
 
@@ -413,7 +454,17 @@ def simulated_operator(
 ) -> Operator:
     """An ``Operator`` of the simulated ``model`` (true robot drawn from ``seed``, its arm at
     'home') whose controller knows the true params (demos, tests, benchmarks); the controller
-    is built, not compiled (``operator.controller.compile()``)."""
+    is built, not compiled (``operator.controller.compile()``).
+
+    Args:
+        out: folder for its runs and calibrations.
+        model: a built-in model name or a model file.
+        seed: the true robot's draw and the simulator's noise.
+        preset: the gains preset ("tracking", "paper").
+
+    Returns:
+        The ``Operator``, paced on the wall clock; no page yet (``serve``).
+    """
     from jaxcomp.control.impedance import make_impedance_controller
     from jaxcomp.control.mount import arm_model
     from jaxcomp.control.presets import impedance_gains

@@ -196,14 +196,27 @@ class Page:
         )
 
     def reply(self, name: str, ok: str | None, error: str | None) -> None:
-        """Show the control process's answer to command ``name``."""
+        """Show the control process's answer to command ``name``.
+
+        Args:
+            name: the command.
+            ok: what its handler returned, shown after ``name`` (None or empty: nothing).
+            error: its error message (None: it succeeded).
+        """
         if error is not None:
             self.message.content = f"<span style='color:#c00'>**error:** {error}</span>"
         else:
             self.message.content = f"{name}: {ok}" if ok else ""
 
     def set_status(self, status: dict) -> None:
-        """What the control process reports: state, arm modes, faults, params, progress."""
+        """What the control process reports: state, arm modes, faults, params, progress.
+
+        Args:
+            status: fields updating those shown so far: state, detail, arm_modes,
+                base_stopped, faults (list), ratio (n,) A/(N m) and friction (n,) A, params
+                (their source), progress 0-1, last_run, error, gains {"stiffness": N/m,
+                "damping": N s/m}.
+        """
         self._state.update(status)
         s = self._state
         lines = [f"**{s.get('state', '?')}**" + (f" — {s['detail']}" if s.get("detail") else "")]
@@ -232,7 +245,13 @@ class Page:
 
     # ---- frames
     def frames(self, frames: np.ndarray, dropped: int) -> None:
-        """Take new frames (oldest first); redraw the plots every third call."""
+        """Take new frames (oldest first); redraw the plots every ``DRAW_EVERY``-th call that
+        brings frames (the period histogram every second redraw).
+
+        Args:
+            frames: (k, width) frames (``feed.FrameLayout``), oldest first; k may be 0.
+            dropped: frames the ring overwrote before they were read, so far (shown).
+        """
         lay = self.layout
         for f in frames:
             phase = f[1]

@@ -51,7 +51,19 @@ class FrameRing:
     @classmethod
     def create(cls, width: int, slots: int = 64, folder: str | Path | None = None) -> FrameRing:
         """A new, empty ring in a fresh file (in ``folder``, default ``/dev/shm`` when it
-        exists, else the temporary folder)."""
+        exists, else the temporary folder).
+
+        Args:
+            width: float64 numbers per frame, >= 1.
+            slots: frames it holds before overwriting the oldest, >= 2.
+            folder: where its file goes (None: as above).
+
+        Returns:
+            The writer's side (``close`` removes the file).
+
+        Raises:
+            InputError: ``width`` < 1 or ``slots`` < 2.
+        """
         if width < 1 or slots < 2:
             raise InputError(f"a frame ring needs width >= 1 and slots >= 2, got {width}, {slots}")
         if folder is None:
@@ -73,7 +85,11 @@ class FrameRing:
 
     def write(self, frame: np.ndarray) -> None:
         """Append one frame (``width`` floats; shorter ones are padded with NaN). Never
-        blocks; overwrites the oldest slot."""
+        blocks; overwrites the oldest slot.
+
+        Args:
+            frame: (k,) float64; numbers past ``width`` are left out.
+        """
         count = int(self._head[1])
         slot = count % self.slots
         self._seq[slot] = 2 * count + 1  # writing

@@ -79,7 +79,15 @@ def _box(half: np.ndarray):
 
 def geom_mesh(model: mujoco.MjModel, g: int) -> tuple[np.ndarray, np.ndarray] | None:
     """(vertices (V, 3) m, faces (F, 3)) of geom ``g`` in its own frame, or None for what is
-    not drawn as a mesh (planes, height fields, lines)."""
+    not drawn as a mesh (planes, height fields, lines).
+
+    Args:
+        model: the MuJoCo model.
+        g: the geom's index.
+
+    Returns:
+        (vertices (V, 3) float m, faces (F, 3) uint32 vertex indices), or None.
+    """
     t, size = int(model.geom_type[g]), model.geom_size[g]
     kind = mujoco.mjtGeom
     if t == kind.mjGEOM_SPHERE:
@@ -101,7 +109,15 @@ def geom_mesh(model: mujoco.MjModel, g: int) -> tuple[np.ndarray, np.ndarray] | 
 
 
 def geom_color(model: mujoco.MjModel, g: int) -> tuple[tuple[int, int, int], float]:
-    """(RGB 0-255, opacity) of geom ``g``: its material's colour, else its own."""
+    """(RGB 0-255, opacity) of geom ``g``: its material's colour, else its own.
+
+    Args:
+        model: the MuJoCo model.
+        g: the geom's index.
+
+    Returns:
+        ((r, g, b) ints 0-255, opacity 0-1).
+    """
     mat = int(model.geom_matid[g])
     rgba = model.mat_rgba[mat] if mat >= 0 else model.geom_rgba[g]
     rgb = tuple(int(round(255 * float(c))) for c in rgba[:3])
@@ -176,7 +192,13 @@ class RobotScene:
         self._frames = 0
 
     def pose(self, q: np.ndarray, base: np.ndarray | None) -> None:
-        """Pose every body for arm joint angles ``q`` (rad) and base pose ``base``."""
+        """Pose every body for arm joint angles ``q`` (rad) and base pose ``base``.
+
+        Args:
+            q: (n,) arm joint angles, rad, in the order of ``arm_joints``.
+            base: (3,) the base's (x m, y m, yaw rad), world frame; None, not finite, or a
+                model without the three base joints: the base stays where it was.
+        """
         m, d = self.model, self.data
         d.qpos[self._qadr] = q
         if self._badr is not None and base is not None and np.all(np.isfinite(base)):
@@ -188,7 +210,16 @@ class RobotScene:
 
     def markers(self, target, ee, force, band) -> None:
         """The target (hidden when NaN), the trail of ``ee``, the force arrow (N, drawn from
-        the end effector at ``ARROW_SCALE`` m/N) and its band (a box around its tip)."""
+        the end effector at ``ARROW_SCALE`` m/N) and its band (a box around its tip).
+
+        Args:
+            target: (3,) the target position, m, world frame (NaN: none, hidden).
+            ee: (3,) the end effector's position, m, world frame (NaN: no trail point, no
+                arrow).
+            force: (3,) the external force, N, world frame (NaN: no arrow).
+            band: (3,) the force's band per axis, N (NaN: no box); the box's half sizes are
+                ``ARROW_SCALE`` times it.
+        """
         if np.all(np.isfinite(target)):
             self.target.position = np.asarray(target, float)
             self.target.visible = True

@@ -19,7 +19,14 @@ from jaxcomp.console.ring import FrameRing
 
 
 def serve(conn, setup: dict) -> None:
-    """Serve the console page (see the module doc); ``setup`` from ``ConsoleLink``."""
+    """Serve the console page (see the module doc); ``setup`` from ``ConsoleLink``.
+
+    Args:
+        conn: the connection to the control process (``multiprocessing.connection``).
+        setup: the control process's description: the ring's path, the model and its
+            controlled joints, the arm's and the base's joints, host, port, and what ``Page``
+            reads.
+    """
     import logging
 
     import viser

@@ -26,12 +26,18 @@ from jaxcomp.studies.plan_recording import Simulated
 class Estimates(NamedTuple):
     """One method's estimates of W worlds against their truth (P parameters).
 
-    names (P,), units (P,); estimate, truth, std (W, P) (std NaN where none was reported);
-    identified (W, P) bool: the data determine the parameter (``batched_fit.identified``); ok (W,)
-    bool: the fit converged / did not fail; gravity (W, n): relative RMS gravity-current error
-    per joint at random poses (``evaluate.gravity_current_error_batch``); gravity_pooled (W,):
-    the same pooled over the joints the world's plan sweeps (``pooled=True``: no fit learns the
-    ratio of a joint it never moves); swept (W, n) bool: the joints the world's plan sweeps.
+    Attributes:
+        names: (P,) the parameters' names. units: (P,) their units (module doc).
+        estimate, truth: (W, P) in those units.
+        std: (W, P) the standard errors the fit reported (NaN where none was).
+        identified: (W, P) bool: the data determine the parameter
+            (``batched_fit.identified``).
+        ok: (W,) bool: the fit converged / did not fail.
+        gravity: (W, n) relative RMS gravity-current error per joint at random poses, a
+            fraction (``evaluate.gravity_current_error_batch``).
+        gravity_pooled: (W,) the same pooled over the joints the world's plan sweeps
+            (``pooled=True``: no fit learns the ratio of a joint it never moves).
+        swept: (W, n) bool: the joints the world's plan sweeps.
     """
 
     names: list[str]
@@ -59,12 +65,26 @@ class Estimates(NamedTuple):
         return np.where(self.ok[:, None], self.estimate - self.truth, np.nan)
 
     def rows(self, rows: slice) -> "Estimates":
-        """The worlds ``rows``."""
+        """The worlds ``rows``.
+
+        Args:
+            rows: the worlds, a slice or (k,) indices.
+
+        Returns:
+            Their ``Estimates`` (names and units shared).
+        """
         return Estimates(*(x[rows] if isinstance(x, np.ndarray) else x for x in self))
 
 
 def concat_estimates(parts: Sequence[Estimates]) -> Estimates:
-    """The worlds of ``parts`` (one method, the same parameters) one after another."""
+    """The worlds of ``parts`` (one method, the same parameters) one after another.
+
+    Args:
+        parts: at least one ``Estimates``.
+
+    Returns:
+        The ``Estimates`` of all their worlds (names and units the first's).
+    """
     first = parts[0]
     return Estimates(
         *(
@@ -78,7 +98,16 @@ def concat_estimates(parts: Sequence[Estimates]) -> Estimates:
 
 def jax_truth_vector(model: FitModel, truth: BatchTruth) -> np.ndarray:
     """(W, 3n + K) the truth in the joint fit's parameter order [ratio, friction, viscous
-    (A s/rad: ratio x viscous), com (the fitted links, m)]."""
+    (A s/rad: ratio x viscous), com (the fitted links, m)].
+
+    Args:
+        model: the joint fit's model (n joints, K COM components of its fitted links).
+        truth: the W true robots.
+
+    Returns:
+        (W, 3n + K): ratio A/(N m) | friction A | viscous A s/rad | COM offsets m (link
+        frame).
+    """
     return np.concatenate(
         [
             truth.ratio,
@@ -92,7 +121,14 @@ def jax_truth_vector(model: FitModel, truth: BatchTruth) -> np.ndarray:
 
 def jax_parameters(model: FitModel) -> tuple[list[str], list[str]]:
     """The names and units of the joint fit's ``Estimates`` parameters: ratio, friction,
-    viscous, COM offsets, phase shifts."""
+    viscous, COM offsets, phase shifts.
+
+    Args:
+        model: the joint fit's model.
+
+    Returns:
+        (names, units), 4n + K each.
+    """
     n = model.n
     units = ["A/(N m)"] * n + ["A"] * n + ["A s/rad"] * n + ["m"] * model.K + ["rad"] * n
     return model.parameter_names() + [f"phase_shift[{j}]" for j in range(n)], units
@@ -112,7 +148,20 @@ def jax_estimates(
     true COM offsets through the same sweep coefficients). ``ok``: converged, and the world
     ran the plan without a fault (a real arm would have stopped). ``batch``: the gravity
     errors in batches of exactly that many worlds (``gravity_current_error_batch(fixed=)``;
-    None: its default)."""
+    None: its default).
+
+    Args:
+        robot: the nominal model.
+        model: the joint fit's model.
+        truth: the W true robots.
+        simulated: their simulation (moments, faults).
+        fits: the joint fit of every world.
+        poses: (p, n) rad, the random poses of the gravity errors.
+        batch: as above.
+
+    Returns:
+        The ``Estimates`` of the W worlds, 4n + K parameters.
+    """
     sol, n, w = fits.solution, model.n, truth.worlds
     lin = 3 * n
     true = jax_truth_vector(model, truth)
@@ -173,7 +222,23 @@ def scipy_estimates(
     """The paper's scipy fit of the M worlds ``worlds`` (indices into ``truth`` and ``jax``),
     whose ``recordings`` these are: ratio and friction as ``Estimates`` (identified where the
     joint fit's are), and the fits that failed (their world index and the error); ``batch``
-    as ``jax_estimates`` takes it."""
+    as ``jax_estimates`` takes it.
+
+    Args:
+        robot: the nominal model.
+        truth: the true robots of every world.
+        worlds: (M,) the sample's world indices.
+        recordings: their M recordings.
+        jax: the joint fit's ``Estimates`` of every world (its ``ok``, ``identified``,
+            ``swept`` and truth).
+        poses: (p, n) rad, the random poses of the gravity errors.
+        progress: called after each fit.
+        batch: as above.
+
+    Returns:
+        (the ``Estimates`` of the M worlds, 2n parameters, ok only where the joint fit's
+        world is; the failed fits [{"world", "error"}]).
+    """
     if recordings:  # pinocchio, a heavy optional dependency: only when there is a fit to do
         from jaxcomp.identify.baseline import fit_baseline
     m, n, nb = len(recordings), truth.ratio.shape[1], len(robot.link_names)

@@ -23,7 +23,16 @@ if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn
 def plot_errors(report: dict, arrays: dict, path: Path) -> Path:
     """Estimate errors against the truth per joint, JAX fit (all worlds) beside the scipy
     fit (its M worlds): ratio and friction (relative, %), gravity current (relative RMS, %),
-    and the JAX fit's COM offset errors (mm) per link axis."""
+    and the JAX fit's COM offset errors (mm) per link axis.
+
+    Args:
+        report: the study's report (study.json: worlds, seed, plan, record_rate_hz, backend).
+        arrays: its worlds.npz arrays.
+        path: the figure's file (its suffix the format).
+
+    Returns:
+        ``path``, written.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -76,7 +85,16 @@ def plot_errors(report: dict, arrays: dict, path: Path) -> Path:
 def plot_coverage(report: dict, arrays: dict, path: Path) -> Path:
     """Coverage of the reported standard errors per parameter (fraction of |error| < 1.96
     std; 0.95 expected), the Cramer-Rao comparison (empirical spread against the reported
-    std, JAX fit), and the z-scores error / std of the determined parameters against N(0, 1)."""
+    std, JAX fit), and the z-scores error / std of the determined parameters against N(0, 1).
+
+    Args:
+        report: the study's report (its parameter tables).
+        arrays: its worlds.npz arrays.
+        path: the figure's file (its suffix the format).
+
+    Returns:
+        ``path``, written.
+    """
     import matplotlib
 
     matplotlib.use("Agg")

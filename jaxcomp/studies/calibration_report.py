@@ -58,7 +58,18 @@ def concat_chunks(
 ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """(worlds.npz arrays, summed run times s and counts) of the chunks' ``parts`` in world
     order ({"world": ..., "scipy": ..., "timing": {key: s}}, as ``ChunkStore`` keeps them);
-    ``names``, ``units``: the parameters'."""
+    ``names``, ``units``: the parameters'.
+
+    Args:
+        parts: the chunks, in world order: {"world": {``WORLD_KEYS``}, "scipy":
+            {``SCIPY_KEYS``}, "timing": {key: s or a count}}.
+        names: the P parameters' names (``calibration_estimates.jax_parameters``).
+        units: their units.
+
+    Returns:
+        (the worlds.npz arrays, with parameter_names and parameter_units; the timings summed
+        over the chunks).
+    """
     arrays = {"parameter_names": np.array(names), "parameter_units": np.array(units)}
     for part, keys in (("world", WORLD_KEYS), ("scipy", SCIPY_KEYS)):
         for k in keys:
@@ -69,7 +80,15 @@ def concat_chunks(
 
 def estimates(arrays: Mapping[str, np.ndarray]) -> tuple[Estimates, Estimates, list[dict]]:
     """(JAX estimates of every world, scipy estimates of its sample, the failed scipy fits
-    [{world, error}]) from worlds.npz arrays (as ``calibration_estimates`` made them)."""
+    [{world, error}]) from worlds.npz arrays (as ``calibration_estimates`` made them).
+
+    Args:
+        arrays: the worlds.npz arrays (``concat_chunks``).
+
+    Returns:
+        (JAX ``Estimates`` (W worlds, P parameters), scipy ``Estimates`` (M worlds, ratio and
+        friction), the failed scipy fits).
+    """
     names, units = [str(s) for s in arrays["parameter_names"]], list(arrays["parameter_units"])
     n = arrays["swept"].shape[1]
     jax_est = Estimates(
@@ -110,7 +129,16 @@ def study_report(arrays: Mapping[str, np.ndarray], run: Mapping[str, Any]) -> di
     """study.json: the findings computed from the worlds.npz ``arrays`` only, with the run's
     description ``run`` (format, model, seed, plan, truth, backend, devices, timing_s, ...;
     ``timing_s`` must hold simulate_stepping, fit_jax_run, fit_scipy and ``world_steps`` the
-    simulated world-steps) placed around them."""
+    simulated world-steps) placed around them.
+
+    Args:
+        arrays: the worlds.npz arrays (``concat_chunks``).
+        run: the run's description, as above (``run["plan"]["groups"]``: the plans).
+
+    Returns:
+        The report, JSON-able but for NaN: ``run`` (less timing_s and world_steps), the
+        faults, both fits' findings, coverage, Cramer-Rao, timing_s and throughput.
+    """
     jax_est, scipy_est, failed = estimates(arrays)
     sample, n = arrays["scipy_worlds"], arrays["swept"].shape[1]
     keep, worlds = len(sample), len(jax_est.ok)

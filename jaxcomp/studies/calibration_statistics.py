@@ -26,7 +26,16 @@ def parameter_table(est: Estimates, relative: int) -> dict:
     (ratio and friction) also relative to the truth (``relative_bias``, ``relative_rmse``,
     ``relative_p95_abs``), over the fits where the data bear on it (``Estimates.determined``:
     a joint's friction counts only where its joint is swept). ``identified``: fraction of the
-    fits where the data determine it."""
+    fits where the data determine it.
+
+    Args:
+        est: one method's estimates of W worlds.
+        relative: how many leading parameters also get relative errors (2n: ratio, friction).
+
+    Returns:
+        {parameter name: {statistic: float}}, errors in the parameter's unit, relative ones
+        as fractions; ``identified`` over the fits that are ok.
+    """
     err = np.where(est.determined, est.error, np.nan)
     stats = error_statistics(err, est.std)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -43,7 +52,14 @@ def parameter_table(est: Estimates, relative: int) -> dict:
 
 
 def groups(names: Sequence[str]) -> dict[str, np.ndarray]:
-    """Parameter indices by kind: ratio, friction, viscous, com_offset, phase_shift."""
+    """Parameter indices by kind: ratio, friction, viscous, com_offset, phase_shift.
+
+    Args:
+        names: the parameters' names ("ratio[j]", "com_offset[...]", ...).
+
+    Returns:
+        {kind: (k,) int indices into ``names``}, the kinds present only.
+    """
     kinds = ("ratio", "friction", "viscous", "com_offset", "phase_shift")
     return {
         k: np.array([i for i, s in enumerate(names) if s.startswith(k + "[")], int)
@@ -54,7 +70,15 @@ def groups(names: Sequence[str]) -> dict[str, np.ndarray]:
 
 def coverage_summary(est: Estimates) -> dict:
     """Coverage of +-1.96 std and moments of the z-scores error / std, pooled over the fits
-    and the parameters the data determine: all of them and per kind."""
+    and the parameters the data determine: all of them and per kind.
+
+    Args:
+        est: one method's estimates.
+
+    Returns:
+        {"identified": pooled over every kind, "worst": ``worst_coverage``, kind: pooled},
+        pooled = {count, coverage_95, z_mean, z_std} (NaN where too few).
+    """
 
     def pooled(cols: np.ndarray | slice) -> dict:
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -75,7 +99,15 @@ def coverage_summary(est: Estimates) -> dict:
 def worst_coverage(est: Estimates, min_fits: int = WORST_MIN_FITS) -> dict | None:
     """The determined parameter whose own coverage of +-1.96 std is lowest, over the
     parameters determined in at least ``min_fits`` fits: {parameter, coverage_95, count};
-    None when none is."""
+    None when none is.
+
+    Args:
+        est: one method's estimates.
+        min_fits: fewest fits that determine a parameter for it to count.
+
+    Returns:
+        {"parameter": name, "coverage_95": fraction, "count": fits}, or None.
+    """
     with np.errstate(invalid="ignore", divide="ignore"):
         z = est.error / est.std
     use = est.identified & np.isfinite(z)
@@ -94,7 +126,16 @@ def worst_coverage(est: Estimates, min_fits: int = WORST_MIN_FITS) -> dict | Non
 
 def cramer_rao_summary(table: dict, names: Sequence[str]) -> dict:
     """Per kind: median over the determined parameters of (empirical spread of the errors) /
-    (RMS of the std the fit reported, its Cramer-Rao bound); 1 when they agree."""
+    (RMS of the std the fit reported, its Cramer-Rao bound); 1 when they agree.
+
+    Args:
+        table: ``parameter_table`` of the estimates; a parameter counts where it is
+            identified in more than half the fits.
+        names: the parameters' names, in order.
+
+    Returns:
+        {kind: {parameters: count, median_spread_over_std, min, max}} (NaN: none).
+    """
     out = {}
     for kind, idx in groups(names).items():
         rows = [table[names[i]] for i in idx if table[names[i]]["identified"] > 0.5]
@@ -111,7 +152,14 @@ def cramer_rao_summary(table: dict, names: Sequence[str]) -> dict:
 
 def gravity_summary(errors: np.ndarray) -> dict:
     """Per joint median, 95th percentile and max over the worlds of the relative gravity-
-    current error per joint (NaN: the joint carries no gravity)."""
+    current error per joint (NaN: the joint carries no gravity).
+
+    Args:
+        errors: (W, n) relative gravity-current errors, fractions (NaN: none).
+
+    Returns:
+        {"median", "p95", "max": n floats each}; empty lists for no world.
+    """
     e = np.asarray(errors, float)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN joints: NaN is the answer
@@ -127,7 +175,17 @@ def gravity_summary(errors: np.ndarray) -> dict:
 def gravity_comparison(jax: Estimates, scipy: Estimates) -> dict:
     """On the worlds both fits have (the scipy sample, fits ok): how often the JAX fit's
     gravity-current error pooled over the swept joints (``Estimates.gravity_pooled``) is worse than
-    the scipy fit's, and the medians of both."""
+    the scipy fit's, and the medians of both.
+
+    Args:
+        jax: the joint fit's estimates of the scipy sample's worlds, in its order (its
+            first M rows count).
+        scipy: the scipy fit's estimates of those M worlds.
+
+    Returns:
+        {"worlds": count, "jax_worse_fraction", "jax_median", "scipy_median"}, errors as
+        fractions (NaN: no world).
+    """
     j, s = jax.gravity_pooled[: len(scipy.ok)], scipy.gravity_pooled
     both = jax.ok[: len(scipy.ok)] & scipy.ok & np.isfinite(j) & np.isfinite(s)
     j, s = j[both], s[both]
@@ -142,7 +200,16 @@ def gravity_comparison(jax: Estimates, scipy: Estimates) -> dict:
 def identified_ratio_error(est: Estimates, n: int) -> dict:
     """The largest |relative error| of the ratios (the first ``n`` parameters) over the fits
     that are ok and the ratios they report as identified: the value, its world and joint, and
-    how many ratios count."""
+    how many ratios count.
+
+    Args:
+        est: one method's estimates.
+        n: the arm's joints (the ratios lead the parameters).
+
+    Returns:
+        {"count", "max_abs_relative": fraction, "world": row of ``est``, "joint"} (NaN and
+        None when no ratio counts).
+    """
     with np.errstate(invalid="ignore", divide="ignore"):
         rel = np.abs(est.estimate[:, :n] / est.truth[:, :n] - 1)
     use = est.identified[:, :n] & est.ok[:, None] & np.isfinite(rel)

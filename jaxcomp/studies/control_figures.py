@@ -13,7 +13,15 @@ FIGURES = ("tracking.png", "compliance.png")
 
 def write_figures(report: dict, out: Path) -> list[Path]:
     """tracking.png and compliance.png: histograms over the worlds whose phase ended before
-    any fault, and scatter against the controller's model error."""
+    any fault, and scatter against the controller's model error.
+
+    Args:
+        report: the control study's report (its per_world arrays, worlds, seed, backend).
+        out: the folder the figures go to.
+
+    Returns:
+        The paths written, in ``FIGURES`` order.
+    """
     import matplotlib
 
     matplotlib.use("Agg")

@@ -43,6 +43,15 @@ def impedance_policy(
     ``base_sum``/``push_sum`` (3,) m of ee - target and ``base_n``/``push_n``.
     Kept on the robot per (gains, max_saturated_cycles): one compiled program per
     configuration and simulator.
+
+    Args:
+        robot: the controller's model (an arm alone), or its built-in name or file.
+        gains: the controller's gains.
+        max_saturated_cycles: consecutive saturated cycles beyond which a world's run stops
+            (the loop's watchdog).
+
+    Returns:
+        The ``Policy`` (init, step).
     """
     robot = load_robot(robot)
     key = ("study_impedance_policy", gains, max_saturated_cycles)
@@ -115,6 +124,17 @@ def controller_params(
     robot: Robot, ratio: np.ndarray, friction: np.ndarray, com_offset: np.ndarray
 ) -> dict[str, np.ndarray]:
     """Per-world policy params: ratio (W, n) A/(N m), friction (W, n) A, and every link's COM
-    (W, nb, 3) m = nominal + ``com_offset`` (W, nb, 3) m, link frame."""
+    (W, nb, 3) m = nominal + ``com_offset`` (W, nb, 3) m, link frame.
+
+    Args:
+        robot: the arm-alone model.
+        ratio: (W, n) A/(N m), the controller's ratios.
+        friction: (W, n) A, its friction losses.
+        com_offset: (W, nb, 3) m, its COM offsets of every link (``robot.link_names``
+            order, link frame).
+
+    Returns:
+        {"ratio": (W, n), "friction": (W, n), "com": (W, nb, 3)} float arrays.
+    """
     com = np.asarray(robot.nominal_params().com)[None] + np.asarray(com_offset, float)
     return {"ratio": np.asarray(ratio, float), "friction": np.asarray(friction, float), "com": com}

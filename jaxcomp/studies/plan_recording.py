@@ -67,7 +67,15 @@ class SignalPlans(NamedTuple):
 def signal_plans(signal: PlanSignal, every: int) -> SignalPlans:
     """The ``SignalPlans`` of the samples of ``signal`` recorded every ``every`` steps (sample
     i: the state after plan step i every, commanded q_ref there, at the commanded velocity of
-    that step)."""
+    that step).
+
+    Args:
+        signal: the plan's signal (T steps of 1 ms).
+        every: the recording decimation, steps.
+
+    Returns:
+        The ``SignalPlans`` of its ceil(T / every) samples.
+    """
     rec = np.arange(0, len(signal.joint), every)
     q = signal.q_ref
     velocity = np.diff(q, axis=0, prepend=q[:1]) / CONTROL_PERIOD
@@ -95,7 +103,16 @@ def _stacked_rows(rows: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
 
 def plan_reduction(plans: list[SignalPlans], n: int, current_lag: float) -> Reduction:
     """The ``Reduction`` that sums each world's sweep moments and transfer bins on the device
-    (carry: (``StreamSums``, ``TransferSums``)): world w follows ``plans[group[w]]``."""
+    (carry: (``StreamSums``, ``TransferSums``)): world w follows ``plans[group[w]]``.
+
+    Args:
+        plans: the ``SignalPlans`` of each group's signal (one: every world the same).
+        n: the arm's joints.
+        current_lag: s, the measured current's lag behind the state (``MjxSimulator``).
+
+    Returns:
+        The ``Reduction`` for ``MjxSimulator.run(reduce=)``.
+    """
     sweeps = max(p.sweeps.sweep_joint.size for p in plans)
     bins = max(p.transfers.use.shape[0] for p in plans)
     xs = (
@@ -115,11 +132,17 @@ def plan_reduction(plans: list[SignalPlans], n: int, current_lag: float) -> Redu
 
 
 class Simulated(NamedTuple):
-    """What the simulation stage returns: ``moments`` (stacked SweepMoments, leading axis
-    N), ``transfers`` (stacked TransferBins (N, B, n)), ``recordings`` of the first M worlds,
-    ``fault_step`` (N,) (-1: none), ``timing`` s
-    (wall, compilation, stepping without compilation, turning the device's sums into
-    moments), ``world_steps`` simulated (settling included)."""
+    """What the simulation stage returns (N worlds).
+
+    Attributes:
+        moments: stacked ``SweepMoments``, leading axis N.
+        transfers: stacked ``TransferBins``, (N, B, n).
+        recordings: the ``Recording`` of each kept world (study id below ``keep``), in order.
+        fault_step: (N,) the plan step of each world's first fault (-1: none).
+        timing: s: wall, compilation, stepping without compilation, turning the device's
+            sums into moments.
+        world_steps: world-steps simulated (settling included).
+    """
 
     moments: SweepMoments
     transfers: TransferBins
@@ -154,6 +177,24 @@ def simulate(
     sweep (``pack_segments``): B MJX worlds per true robot for about 1/B of the steps, which
     fills an accelerator that a few thousand worlds leave idle. Each segment simulates the
     transfer to its sweep too (its data count; its faults do not, as the sweep's own).
+
+    Args:
+        sim: the MJX simulator of the robot.
+        truth: the W true robots.
+        signal: the plan's signal (``plan_signal.plan_signal``).
+        seed: the noise's seed.
+        every: the recording decimation, steps (10: 100 Hz).
+        world_batch: true robots per MJX run.
+        keep: study world ids below which a world keeps its ``Recording``.
+        progress: called with the plan steps (of all worlds) done since its last call.
+        parallel: run the sweeps side by side (above).
+        offset: the study world id of ``truth``'s world 0.
+
+    Returns:
+        The ``Simulated``: moments and transfer bins of all W worlds, the kept recordings.
+
+    Raises:
+        InputError: ``parallel`` and a sweep that does not start at rest.
     """
     n_worlds, steps = truth.worlds, len(signal.q_ref)
     start = start_pose(sim.robot)
@@ -207,7 +248,16 @@ def fit_input_like(
 ) -> tuple[SweepMoments, TransferBins]:
     """One true robot's sweep moments and transfer bins as ``simulate`` returns them (from
     zero sums; in turn or side by side, the same sweeps in plan order and as many bins):
-    their shapes and types, e.g. to compile the fits while the worlds still run."""
+    their shapes and types, e.g. to compile the fits while the worlds still run.
+
+    Args:
+        sim: the MJX simulator (its joints and current lag).
+        signal: the plan's signal.
+        every: the recording decimation, steps.
+
+    Returns:
+        (``SweepMoments``, ``TransferBins``), with a leading world axis of 1, from zero sums.
+    """
     plans = signal_plans(signal, every)
     sums, bins = plan_reduction([plans], sim.n, sim.current_lag).init
     return (

@@ -16,16 +16,25 @@ from jaxcomp.robot import Robot
 
 
 def start_pose(robot: Robot) -> np.ndarray:
-    """(n,) rad: where every world starts (the "home" pose), as ``identify.plan.arm_pose``."""
+    """(n,) rad: where every world starts (the "home" pose), as ``identify.plan.arm_pose``.
+
+    Args:
+        robot: the model.
+
+    Returns:
+        (n,) joint angles, rad.
+    """
     return arm_pose(robot)
 
 
 class PlanSignal(NamedTuple):
     """A calibration plan as the 1 kHz signals an MJX run follows and records (T steps).
 
-    q_ref (T, n) rad: what ``Arm.move_to`` sends for the plan's moves; joint (T,): swept joint
-    (-1 outside sweeps); direction (T,): +1 / -1 (0 outside sweeps), as ``identify.recorder``
-    labels them; sweep (T,): index of the plan sweep (its transfer included) of each step.
+    Attributes:
+        q_ref: (T, n) rad, what ``Arm.move_to`` sends for the plan's moves.
+        joint: (T,) the swept joint (-1 outside sweeps).
+        direction: (T,) +1 / -1 (0 outside sweeps), as ``identify.recorder`` labels them.
+        sweep: (T,) the index of the plan sweep (its transfer included) of each step.
     """
 
     q_ref: np.ndarray
@@ -35,7 +44,15 @@ class PlanSignal(NamedTuple):
 
 
 def plan_signal(plan: CalibrationPlan, start: np.ndarray) -> PlanSignal:
-    """The ``PlanSignal`` of ``plan`` from the pose ``start`` (n,) rad."""
+    """The ``PlanSignal`` of ``plan`` from the pose ``start`` (n,) rad.
+
+    Args:
+        plan: the calibration plan.
+        start: (n,) rad, the pose its first move starts from (``start_pose``).
+
+    Returns:
+        The ``PlanSignal``, one step per 1 ms of its moves.
+    """
     pos = np.asarray(start, float)
     parts, labels = [], []
     for i, kind, target, speed, accel, settle in plan.moves():
@@ -58,7 +75,16 @@ MIN_PASS_SAMPLES = 50
 
 def check_every(signal: PlanSignal, every: int) -> None:
     """InputError when recording every ``every``-th step of ``signal`` leaves fewer than
-    ``MIN_PASS_SAMPLES`` samples of its shortest pass (before anything is simulated)."""
+    ``MIN_PASS_SAMPLES`` samples of its shortest pass (before anything is simulated).
+
+    Args:
+        signal: the plan's signal.
+        every: the recording decimation, steps.
+
+    Raises:
+        InputError: the plan has no sweep, or ``every`` is too large (the largest that does
+            is named).
+    """
     d = signal.direction
     starts = np.r_[0, np.flatnonzero(np.diff(d) != 0) + 1]
     lengths = np.diff(np.r_[starts, len(d)])[d[starts] != 0]
@@ -104,7 +130,20 @@ def plan_segments(
     """``Segments`` of ``signal`` (from the pose ``start`` (n,) rad), aligned to ``every``;
     ``transfers=False`` ends each segment with its sweep's last pass: the move to the next
     sweep's start, which a segment run on its own throws away (the next one restarts at
-    rest), is not simulated (the Gen3 Lite's default plan: 177k of 233k steps)."""
+    rest), is not simulated (the Gen3 Lite's default plan: 177k of 233k steps).
+
+    Args:
+        signal: the whole plan's signal (``plan_signal``).
+        start: (n,) rad, the pose the plan starts from.
+        every: the recording decimation, steps: each segment starts at a multiple of it.
+        transfers: keep the transfer to the next sweep in each segment.
+
+    Returns:
+        The ``Segments``, one per plan sweep, in plan order.
+
+    Raises:
+        InputError: a sweep does not start at rest (the plan cannot run side by side).
+    """
     d = signal.direction
     cuts = (np.flatnonzero((d[1:] != 0) & (d[:-1] == 0)) + 1)[1:]  # the sweeps' first steps
     begin = np.r_[0, cuts]
@@ -175,7 +214,16 @@ def pack_segments(seg: Segments, every: int, settle: int) -> Lanes:
     Gen3 Lite's default plan 9 lanes of 28.4 s instead of 14 of 26 s. Depends on the plan alone
     (not on the worlds), so a world's numbers do not depend on how many run. ``settle`` steps:
     the hold after a restart (``SETTLE_STEPS`` as the run's own settling), rounded up to
-    ``every``."""
+    ``every``.
+
+    Args:
+        seg: the plan's segments (``plan_segments``).
+        every: the recording decimation, steps.
+        settle: steps held at rest after a restart.
+
+    Returns:
+        The ``Lanes`` (lane 0 starts the plan).
+    """
     up = lambda x: -(-int(x) // every) * every  # noqa: E731
     length = np.array([up(e - f) for f, e in zip(seg.first, seg.end, strict=True)])
     hold = up(settle)

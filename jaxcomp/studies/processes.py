@@ -36,7 +36,14 @@ class Processes(NamedTuple):
     count: int = 1
 
     def mine(self, items: Sequence[T]) -> list[T]:
-        """Item k of ``items`` when k % count == index."""
+        """Item k of ``items`` when k % count == index.
+
+        Args:
+            items: e.g. the study's chunks, in order.
+
+        Returns:
+            This process's items, in order.
+        """
         return [x for k, x in enumerate(items) if k % self.count == self.index]
 
 
@@ -54,7 +61,20 @@ def start_processes(
     ``coordinator`` "HOST:PORT" of process 0 (None: ``$JAX_COORDINATOR_ADDRESS``, or SLURM's /
     Open MPI's), ``num_processes`` and ``process_id`` (None: SLURM's / Open MPI's). Several
     processes on one CPU machine talk through gloo. InputError when the options do not make a
-    group of processes (no coordinator, an id out of range, JAX already started)."""
+    group of processes (no coordinator, an id out of range, JAX already started).
+
+    Args:
+        distributed: join a group of processes (else one process, and no other option).
+        coordinator: "HOST:PORT" of process 0 (--coordinator).
+        num_processes: the processes in all, >= 1 (--num-processes).
+        process_id: this process's, 0 to ``num_processes`` - 1 (--process-id).
+
+    Returns:
+        This process's ``Processes`` (``ONE_PROCESS`` without ``distributed``).
+
+    Raises:
+        InputError: options without ``distributed``, or as above.
+    """
     given = {
         "--coordinator": coordinator,
         "--num-processes": num_processes,
@@ -95,7 +115,15 @@ def start_processes(
 
 def exchange(processes: Processes, error: str | None) -> list[str | None]:
     """Every process's ``error`` (None: none), gathered on every process (a barrier: each
-    process waits for all the others to call it). Messages are cut to ``MESSAGE_BYTES``."""
+    process waits for all the others to call it). Messages are cut to ``MESSAGE_BYTES``.
+
+    Args:
+        processes: this process among the others.
+        error: this process's error message, or None.
+
+    Returns:
+        ``count`` messages (None: no error), by process index.
+    """
     if processes.count == 1:
         return [error]
     from jax.experimental import multihost_utils
@@ -114,7 +142,20 @@ def exchange(processes: Processes, error: str | None) -> list[str | None]:
 def together(processes: Processes, step: Callable[[], T], where: str) -> T | None:
     """Run ``step`` on this process, then wait for every process's (``exchange``): when one
     failed, every process raises (this process's own exception, the others an InputError
-    naming the process and its message). ``where``: what the step does, for the message."""
+    naming the process and its message). ``where``: what the step does, for the message.
+
+    Args:
+        processes: this process among the others.
+        step: the work, no arguments.
+        where: what it does, e.g. "to set the study up", for the message.
+
+    Returns:
+        What ``step`` returned.
+
+    Raises:
+        InputError: another process's step failed (this process's failure: its own
+            exception).
+    """
     error, result = None, None
     try:
         result = step()

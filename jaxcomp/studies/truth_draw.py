@@ -73,6 +73,16 @@ def draw_truth(
     any ``worlds`` > w, and a range of worlds is drawn without the ones before it (each
     stream advanced past their draws: one 64-bit PCG64 output per uniform double). Friction
     torques scale the model's (``truth_centre``). Payload 0, gravity the model's (upright).
+
+    Args:
+        robot: the nominal model.
+        worlds: how many true robots.
+        seed: the study's seed.
+        spread: how they differ from ``robot``.
+        first: the study world id of the first.
+
+    Returns:
+        The ``BatchTruth`` of the ``worlds`` robots (units as the module doc).
     """
     model = fit_model(robot)
     n, nb = model.n, len(robot.link_names)
@@ -118,5 +128,13 @@ def draw_truth(
 
 
 def truth_rows(truth: BatchTruth, rows: slice | np.ndarray) -> BatchTruth:
-    """The worlds ``rows`` of a ``BatchTruth``."""
+    """The worlds ``rows`` of a ``BatchTruth``.
+
+    Args:
+        truth: W true robots.
+        rows: a slice or (k,) world indices (repeats allowed).
+
+    Returns:
+        A ``BatchTruth`` of those worlds, in that order.
+    """
     return type(truth)(**{f.name: getattr(truth, f.name)[rows] for f in dataclasses.fields(truth)})
