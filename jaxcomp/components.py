@@ -20,6 +20,15 @@ def _const(x) -> bool:
 
 
 def add(a, b):
+    """a + b, a constant 0 folded away.
+
+    Args:
+        a: a component (a float constant or an array).
+        b: a component.
+
+    Returns:
+        The sum, a component.
+    """
     if _const(a) and a == 0.0:
         return b
     if _const(b) and b == 0.0:
@@ -28,12 +37,30 @@ def add(a, b):
 
 
 def sub(a, b):
+    """a - b, a constant 0 folded away.
+
+    Args:
+        a: a component (a float constant or an array).
+        b: a component.
+
+    Returns:
+        The difference, a component.
+    """
     if _const(b) and b == 0.0:
         return a
     return add(a, mul(-1.0, b))
 
 
 def mul(a, b):
+    """a b, constant factors 0, 1 and -1 and products of constants folded away.
+
+    Args:
+        a: a component (a float constant or an array).
+        b: a component.
+
+    Returns:
+        The product, a component.
+    """
     if _const(a):
         if a == 0.0:
             return 0.0
@@ -49,6 +76,14 @@ def mul(a, b):
 
 
 def total(terms):
+    """The sum of ``terms``, folded as ``add``.
+
+    Args:
+        terms: an iterable of components.
+
+    Returns:
+        The sum, a component (0.0 for no terms).
+    """
     out = 0.0
     for t in terms:
         out = add(out, t)
@@ -57,41 +92,119 @@ def total(terms):
 
 def entry(array, index):
     """One entry of a parameter array: a Python float for numpy constants (folded), else the
-    array's entry (traced)."""
+    array's entry (traced).
+
+    Args:
+        array: a numpy array (a constant) or a JAX array.
+        index: the entry's index.
+
+    Returns:
+        A float for a numpy array, else the array's entry.
+    """
     if isinstance(array, np.ndarray):
         return float(array[index])
     return array[index]
 
 
 def const_vec(v) -> list:
+    """A constant vector as a list of floats, entries below 1e-15 in magnitude as exact zeros.
+
+    Args:
+        v: a 1-D array-like of numbers.
+
+    Returns:
+        A list of floats, one per entry.
+    """
     return [0.0 if abs(x) < _EPS else float(x) for x in np.asarray(v, dtype=float)]
 
 
 def const_mat(m) -> list:
+    """A constant matrix as rows of ``const_vec``.
+
+    Args:
+        m: a 2-D array-like of numbers.
+
+    Returns:
+        A list of rows, each a list of floats.
+    """
     return [const_vec(row) for row in np.asarray(m, dtype=float)]
 
 
 def mat_mat(a, b) -> list:
+    """The product a @ b.
+
+    Args:
+        a: a 3x3 matrix, a list of 3 rows of 3 components.
+        b: a 3x3 matrix.
+
+    Returns:
+        a @ b, a 3x3 matrix of components.
+    """
     return [[total(mul(a[i][k], b[k][j]) for k in range(3)) for j in range(3)] for i in range(3)]
 
 
 def mat_vec(a, v) -> list:
+    """The product a @ v.
+
+    Args:
+        a: a 3x3 matrix, a list of 3 rows of 3 components.
+        v: a 3-vector, a list of 3 components.
+
+    Returns:
+        a @ v, a 3-vector of components.
+    """
     return [total(mul(a[i][k], v[k]) for k in range(3)) for i in range(3)]
 
 
 def vec_add(a, b) -> list:
+    """a + b, entry by entry.
+
+    Args:
+        a: a vector, a list of components.
+        b: a vector of the same length.
+
+    Returns:
+        The sum, a list of components.
+    """
     return [add(x, y) for x, y in zip(a, b, strict=True)]
 
 
 def vec_sub(a, b) -> list:
+    """a - b, entry by entry.
+
+    Args:
+        a: a vector, a list of components.
+        b: a vector of the same length.
+
+    Returns:
+        The difference, a list of components.
+    """
     return [sub(x, y) for x, y in zip(a, b, strict=True)]
 
 
 def scale(s, v) -> list:
+    """s v, entry by entry.
+
+    Args:
+        s: a component (a float constant or an array).
+        v: a vector, a list of components.
+
+    Returns:
+        The scaled vector, a list of components.
+    """
     return [mul(s, x) for x in v]
 
 
 def cross(a, b) -> list:
+    """The cross product a x b.
+
+    Args:
+        a: a 3-vector, a list of 3 components.
+        b: a 3-vector.
+
+    Returns:
+        a x b, a 3-vector of components.
+    """
     return [
         sub(mul(a[1], b[2]), mul(a[2], b[1])),
         sub(mul(a[2], b[0]), mul(a[0], b[2])),
@@ -100,18 +213,44 @@ def cross(a, b) -> list:
 
 
 def dot(a, b):
+    """The dot product a . b.
+
+    Args:
+        a: a vector, a list of components.
+        b: a vector of the same length.
+
+    Returns:
+        a . b, a component.
+    """
     return total(mul(x, y) for x, y in zip(a, b, strict=True))
 
 
 def to_array(x, like):
-    """A component (constant or array) as an array broadcast to ``like``'s shape and dtype."""
+    """A component (constant or array) as an array broadcast to ``like``'s shape and dtype.
+
+    Args:
+        x: a component.
+        like: an array of the batch shape and dtype wanted.
+
+    Returns:
+        An array of ``like``'s shape.
+    """
     if _const(x):
         return jnp.full(jnp.shape(like), x, dtype=jnp.result_type(like))
     return jnp.broadcast_to(x, jnp.shape(like))
 
 
 def pack(nested, like, shape: tuple[int, ...]):
-    """One array of ``shape`` from a nested list of components, built by a single stack."""
+    """One array of ``shape`` from a nested list of components, built by a single stack.
+
+    Args:
+        nested: nested lists of components, row-major (e.g. a 3x3 matrix).
+        like: an array of the batch shape and dtype wanted.
+        shape: the shape of one item, e.g. (3, 3).
+
+    Returns:
+        An array of ``like.shape + shape``.
+    """
     flat = []
 
     def walk(x):
@@ -159,6 +298,12 @@ def sincos(x):
 
     Within 1-2 ulp of ``jnp.sin`` / ``jnp.cos`` for |x| < 1.6e6 (rad); plain multiply-adds, so
     XLA vectorises it, unlike its float64 sine and cosine (a libm call per element).
+
+    Args:
+        x: angles, rad, any shape.
+
+    Returns:
+        (sin x, cos x), each of x's shape.
     """
     n = jnp.round(x * (2.0 / np.pi))
     r = ((x - n * _PIO2[0]) - n * _PIO2[1]) - n * _PIO2[2]

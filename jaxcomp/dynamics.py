@@ -63,23 +63,39 @@ __all__ = [
 
 
 class Frames(NamedTuple):
-    """World poses of every body frame, and world axes and anchors of every joint."""
+    """World poses of every body frame, and world axes and anchors of every joint.
 
-    rot: jax.Array  # (nb, 3, 3)
-    pos: jax.Array  # (nb, 3) m
-    axis: jax.Array  # (nv, 3) unit
-    anchor: jax.Array  # (nv, 3) m
+    Attributes:
+        rot: (nb, 3, 3) each body's orientation: columns are its axes in the world frame.
+        pos: (nb, 3) m, each body frame's origin in the world frame.
+        axis: (nv, 3) each joint's unit axis in the world frame.
+        anchor: (nv, 3) m, each joint's anchor point in the world frame.
+    """
+
+    rot: jax.Array
+    pos: jax.Array
+    axis: jax.Array
+    anchor: jax.Array
 
 
 class OperationalSpace(NamedTuple):
-    """Task-space quantities of a site's position (Eq. 2 and 5 of the paper)."""
+    """Task-space quantities of a site's position (Eq. 2 and 5 of the paper).
 
-    pos: jax.Array  # (3,) m, site position
-    jac: jax.Array  # (3, nv) position Jacobian
-    lam: jax.Array  # (3, 3) Cartesian inertia Lambda, kg
-    mu: jax.Array  # (3, 3) Cartesian Coriolis matrix mu, kg/s
-    jac_bar: jax.Array  # (nv, 3) dynamically consistent inverse M^-1 J^T Lambda
-    nullspace: jax.Array  # (nv, nv) projector N = I - J^T jac_bar^T
+    Attributes:
+        pos: (3,) m, the site's position x, world frame.
+        jac: (3, nv) position Jacobian J, world-aligned, m/rad (1 for a slide).
+        lam: (3, 3) kg, Cartesian inertia Lambda = (J M^-1 J^T)^-1.
+        mu: (3, 3) kg/s, Cartesian Coriolis matrix mu.
+        jac_bar: (nv, 3) dynamically consistent inverse J_bar = M^-1 J^T Lambda.
+        nullspace: (nv, nv) nullspace projector N = I - J^T J_bar^T.
+    """
+
+    pos: jax.Array
+    jac: jax.Array
+    lam: jax.Array
+    mu: jax.Array
+    jac_bar: jax.Array
+    nullspace: jax.Array
 
 
 def _params(tree: KinematicTree, params: InertialParams | None) -> InertialParams:
@@ -91,6 +107,14 @@ def forward_kinematics(tree: KinematicTree, q: jax.Array) -> Frames:
 
     From the lane frames of ``fast_dynamics.lane_frames``: a body's frame is its lane's frame
     times the body's constant offset in it (the world, for a body no joint moves).
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        q: joint positions (nv,), rad (slides: m).
+
+    Returns:
+        ``Frames``: body orientations (nb, 3, 3) and origins (nb, 3) m, joint axes (nv, 3)
+        and anchors (nv, 3) m, world frame.
     """
     lanes = tree.lanes
     rot, pos = fast_dynamics.lane_frames(tree, q)
@@ -113,7 +137,16 @@ def _point_on_body(frames: Frames, body: int, local: np.ndarray) -> jax.Array:
 
 
 def site_pose(tree: KinematicTree, q: jax.Array, site: int) -> tuple[jax.Array, jax.Array]:
-    """World position (3,) m and orientation (3, 3) of site index ``site``."""
+    """World position (3,) m and orientation (3, 3) of site index ``site``.
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        q: joint positions (nv,), rad (slides: m).
+        site: site index (into ``tree.site_names``).
+
+    Returns:
+        (position (3,) m, rotation (3, 3): columns are the site's axes), world frame.
+    """
     frames = forward_kinematics(tree, q)
     b = int(tree.site_body[site])
     if b < 0:
@@ -122,7 +155,18 @@ def site_pose(tree: KinematicTree, q: jax.Array, site: int) -> tuple[jax.Array, 
 
 
 def site_jacobian(tree: KinematicTree, q: jax.Array, site: int) -> jax.Array:
-    """(6, nv) Jacobian of site ``site``, world-aligned: rows vx, vy, vz, wx, wy, wz."""
+    """(6, nv) Jacobian of site ``site``, world-aligned: rows vx, vy, vz, wx, wy, wz.
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        q: joint positions (nv,), rad (slides: m).
+        site: site index (into ``tree.site_names``).
+
+    Returns:
+        (6, nv): the site origin's linear velocity per joint rate, m/rad (1 for a slide),
+        over its angular velocity, rad/rad (0 for a slide); zero columns for joints that do
+        not move the site.
+    """
     frames = forward_kinematics(tree, q)
     body = int(tree.site_body[site])
     if body < 0:
@@ -137,7 +181,17 @@ def site_jacobian(tree: KinematicTree, q: jax.Array, site: int) -> jax.Array:
 
 
 def body_com(tree: KinematicTree, q: jax.Array, params: InertialParams | None = None) -> jax.Array:
-    """(nb, 3) world position of every body's centre of mass, m."""
+    """(nb, 3) world position of every body's centre of mass, m.
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        q: joint positions (nv,), rad (slides: m).
+        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
+            link frames; default the model's.
+
+    Returns:
+        (nb, 3) m, world frame.
+    """
     p = _params(tree, params)
     frames = forward_kinematics(tree, q)
     return frames.pos + jnp.einsum("bij,bj->bi", frames.rot, p.com)
@@ -149,6 +203,15 @@ def subtree_com(
     """Centre of mass (nb, 3) m and mass (nb,) kg of each body's subtree (itself included).
 
     A subtree of zero mass reports its body's origin.
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        q: joint positions (nv,), rad (slides: m).
+        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
+            link frames; default the model's.
+
+    Returns:
+        (centre of mass (nb, 3) m in the world frame, mass (nb,) kg).
     """
     p = _params(tree, params)
     com = body_com(tree, q, p)
@@ -183,11 +246,19 @@ def gravity(
 ) -> jax.Array:
     """Generalized gravity g(q) (nv,), N m or N: the torque that holds the arm against gravity.
 
-    ``gravity_vector`` (3,) m/s^2 in the world (base) frame; default (0, 0, -9.81).
-
     Recursive, in joint frames (entry by entry, model constants folded): the gravity vector is
     carried out to every joint frame and each subtree's mass and first moment back in, so a
     pose costs a few hundred flops and one sine and cosine per hinge.
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        q: joint positions (nv,), rad (slides: m).
+        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
+            link frames; default the model's.
+        gravity_vector: gravity (3,) m/s^2 in the world (base) frame; default (0, 0, -9.81).
+
+    Returns:
+        g(q) (nv,), N m (N for a slide).
     """
     p = _params(tree, params)
     if gravity_vector is None:
@@ -280,6 +351,15 @@ def mass_matrix(
 
     M = sum_i m_i Jc_i^T Jc_i + Jw_i^T I_i Jw_i over bodies i, from the Jacobians of every
     body's centre of mass (Jc) and angular velocity (Jw), as a few batched array operations.
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        q: joint positions (nv,), rad (slides: m).
+        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
+            link frames; default the model's.
+
+    Returns:
+        M(q) (nv, nv): kg m^2 between hinges, kg between slides, kg m across.
     """
     p = _params(tree, params)
     frames = forward_kinematics(tree, q)
@@ -303,8 +383,19 @@ def inverse_dynamics(
     Newton-Euler on every body's centre of mass, in the world frame: the body's COM
     acceleration a and angular acceleration alpha from its Jacobians Jc, Jw and their time
     derivatives, then tau = sum_b Jc_b^T m_b (a_b - g) + Jw_b^T (I_b alpha_b + w_b x I_b w_b).
-    ``gravity_vector`` (3,) m/s^2 in the world frame; default (0, 0, -9.81). No automatic
-    differentiation: a few batched array operations, as ``mass_matrix``.
+    No automatic differentiation: a few batched array operations, as ``mass_matrix``.
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        q: joint positions (nv,), rad (slides: m).
+        dq: joint velocities (nv,), rad/s (slides: m/s).
+        ddq: joint accelerations (nv,), rad/s^2 (slides: m/s^2).
+        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
+            link frames; default the model's.
+        gravity_vector: gravity (3,) m/s^2 in the world (base) frame; default (0, 0, -9.81).
+
+    Returns:
+        tau (nv,), N m (N for a slide).
     """
     p = _params(tree, params)
     g = jnp.asarray(STANDARD_GRAVITY if gravity_vector is None else gravity_vector, float)
@@ -345,7 +436,18 @@ def coriolis(
     tree: KinematicTree, q: jax.Array, dq: jax.Array, params: InertialParams | None = None
 ) -> jax.Array:
     """Coriolis and centrifugal forces C(q, dq) dq (nv,), N m or N: ``inverse_dynamics``
-    without acceleration and gravity."""
+    without acceleration and gravity.
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        q: joint positions (nv,), rad (slides: m).
+        dq: joint velocities (nv,), rad/s (slides: m/s).
+        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
+            link frames; default the model's.
+
+    Returns:
+        C(q, dq) dq (nv,), N m (N for a slide).
+    """
     zero = jnp.zeros_like(dq)
     return inverse_dynamics(tree, q, dq, zero, params, jnp.zeros(3))
 
@@ -353,7 +455,18 @@ def coriolis(
 def coriolis_matrix(
     tree: KinematicTree, q: jax.Array, dq: jax.Array, params: InertialParams | None = None
 ) -> jax.Array:
-    """Coriolis matrix C(q, dq) (nv, nv) from Christoffel symbols (M_dot - 2 C is skew)."""
+    """Coriolis matrix C(q, dq) (nv, nv) from Christoffel symbols (M_dot - 2 C is skew).
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        q: joint positions (nv,), rad (slides: m).
+        dq: joint velocities (nv,), rad/s (slides: m/s).
+        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
+            link frames; default the model's.
+
+    Returns:
+        C(q, dq) (nv, nv), such that C dq is in N m (N for a slide).
+    """
     dm = jax.jacfwd(lambda qq: mass_matrix(tree, qq, params))(q)  # dm[i, j, k] = dM_ij / dq_k
     gamma = 0.5 * (dm + jnp.swapaxes(dm, 1, 2) - jnp.transpose(dm, (2, 0, 1)))
     return gamma @ dq
@@ -367,7 +480,19 @@ def bias(
     gravity_vector: jax.Array | None = None,
 ) -> jax.Array:
     """Bias forces C(q, dq) dq + g(q) (nv,): MuJoCo's qfrc_bias, pinocchio's nonLinearEffects
-    (``inverse_dynamics`` without acceleration)."""
+    (``inverse_dynamics`` without acceleration).
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        q: joint positions (nv,), rad (slides: m).
+        dq: joint velocities (nv,), rad/s (slides: m/s).
+        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
+            link frames; default the model's.
+        gravity_vector: gravity (3,) m/s^2 in the world (base) frame; default (0, 0, -9.81).
+
+    Returns:
+        C(q, dq) dq + g(q) (nv,), N m (N for a slide).
+    """
     return inverse_dynamics(tree, q, dq, jnp.zeros_like(dq), params, gravity_vector)
 
 
@@ -382,6 +507,18 @@ def operational_space(
 
     The task is the site's position x (3,) m; with J_bar = M^-1 J^T Lambda,
     Lambda = (J M^-1 J^T)^-1, mu = (J_bar^T C - Lambda J_dot) J_bar, N = I - J^T J_bar^T.
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        q: joint positions (nv,), rad (slides: m).
+        dq: joint velocities (nv,), rad/s (slides: m/s).
+        site: site index (into ``tree.site_names``).
+        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
+            link frames; default the model's.
+
+    Returns:
+        ``OperationalSpace``: x (3,) m, J (3, nv), Lambda (3, 3) kg, mu (3, 3) kg/s, J_bar
+        (nv, 3) and N (nv, nv), world frame.
     """
     pos = site_pose(tree, q, site)[0]
     m = mass_matrix(tree, q, params)

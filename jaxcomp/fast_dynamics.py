@@ -39,13 +39,22 @@ from jaxcomp.params import InertialParams
 
 
 class KinematicsDynamics(NamedTuple):
-    """Kinematic and dynamic terms of one pose and one site, world (base) frame."""
+    """Kinematic and dynamic terms of one pose and one site, world (base) frame.
 
-    gravity: jax.Array  # (nv,) N m (N for slides): g(q), torque holding the arm still
-    jacobian: jax.Array  # (6, nv) site Jacobian, rows vx vy vz (m/s) wx wy wz (rad/s)
-    position: jax.Array  # (3,) m, site position
-    rotation: jax.Array  # (3, 3) site orientation: columns are the site axes
-    mass_matrix: jax.Array  # (nv, nv) kg m^2 (kg for slides), M(q), armature included
+    Attributes:
+        gravity: (nv,) N m (N for slides), g(q): the torque holding the arm still.
+        jacobian: (6, nv) site Jacobian, world-aligned: rows vx vy vz (m/s) over wx wy wz
+            (rad/s) per unit joint rate.
+        position: (3,) m, the site's position.
+        rotation: (3, 3) the site's orientation: columns are the site's axes.
+        mass_matrix: (nv, nv) kg m^2 (kg for slides), M(q), armature included.
+    """
+
+    gravity: jax.Array
+    jacobian: jax.Array
+    position: jax.Array
+    rotation: jax.Array
+    mass_matrix: jax.Array
 
 
 def _rot_mul(a: jax.Array, b: jax.Array) -> jax.Array:
@@ -73,6 +82,14 @@ def lane_frames(tree: KinematicTree, q: jax.Array) -> tuple[jax.Array, jax.Array
     The forward kinematics of every function in ``jaxcomp.dynamics``: each lane's transform
     from its parent (``KinematicTree.lanes``), composed root to leaves with element-wise
     products (a (3, 3) dot would be a kernel of its own).
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        q: joint positions (nv,), rad (slides: m).
+
+    Returns:
+        (rotation (3, 3, nv): lane j's axes as columns of [:, :, j], position (3, nv) m),
+        world frame.
     """
     lanes = tree.lanes
     d = q - tree.joint_ref
@@ -97,7 +114,16 @@ def lane_frames(tree: KinematicTree, q: jax.Array) -> tuple[jax.Array, jax.Array
 
 
 def joint_axes(tree: KinematicTree, rot: jax.Array, pos: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """World joint axes (3, nv) (unit) and anchors (3, nv) m, from ``lane_frames``."""
+    """World joint axes (3, nv) (unit) and anchors (3, nv) m, from ``lane_frames``.
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        rot: (3, 3, nv) the lanes' world rotations (``lane_frames``).
+        pos: (3, nv) m, the lanes' world positions (``lane_frames``).
+
+    Returns:
+        (axes (3, nv) unit, anchors (3, nv) m), world frame.
+    """
     axes, anchors = tree.joint_axis, tree.joint_pos
     if np.all(axes == axes[0]):  # one axis for all joints (e.g. every joint about its z)
         a = sum(float(axes[0, k]) * rot[:, k, :] for k in range(3) if axes[0, k] != 0.0)
@@ -199,9 +225,19 @@ def kinematics_and_dynamics(
 ) -> KinematicsDynamics:
     """g(q), Jacobian, position and orientation of site ``site``, and M(q), in one pass.
 
-    q (nv,) rad or m; ``gravity_vector`` (3,) m/s^2 in the world frame, default (0, 0, -9.81);
-    ``params`` default: the model's. Same values as ``dynamics.gravity``, ``site_jacobian``,
-    ``site_pose`` and ``mass_matrix``.
+    Same values as ``dynamics.gravity``, ``site_jacobian``, ``site_pose`` and ``mass_matrix``.
+
+    Args:
+        tree: the kinematic tree (constant; ``Robot.tree``).
+        q: joint positions (nv,), rad (slides: m).
+        site: site index (into ``tree.site_names``).
+        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
+            link frames; default the model's.
+        gravity_vector: gravity (3,) m/s^2 in the world (base) frame; default (0, 0, -9.81).
+
+    Returns:
+        ``KinematicsDynamics``: g(q) (nv,) N m, the site's Jacobian (6, nv), position (3,) m
+        and orientation (3, 3), M(q) (nv, nv) kg m^2; world frame.
     """
     p = tree.nominal if params is None else params
     gvec = STANDARD_GRAVITY if gravity_vector is None else jnp.asarray(gravity_vector, float)

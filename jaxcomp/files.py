@@ -39,13 +39,27 @@ os.umask(_UMASK)
 
 
 def os_reason(exc: OSError) -> str:
-    """A short reason of ``exc``: its strerror (e.g. "No space left on device"), else str."""
+    """A short reason of ``exc``: its strerror (e.g. "No space left on device"), else str.
+
+    Args:
+        exc: the error.
+
+    Returns:
+        The reason, one line.
+    """
     return exc.strerror or str(exc) or type(exc).__name__
 
 
 def file_problem(exc: OSError | FileError) -> str:
     """One line for a file that could not be read or written: a ``FileError``'s message,
-    an ``OSError``'s file (when it names one) and reason."""
+    an ``OSError``'s file (when it names one) and reason.
+
+    Args:
+        exc: the error.
+
+    Returns:
+        The line.
+    """
     if not isinstance(exc, OSError):
         return str(exc)
     return f"{exc.filename}: {os_reason(exc)}" if exc.filename else os_reason(exc)
@@ -53,7 +67,18 @@ def file_problem(exc: OSError | FileError) -> str:
 
 @contextmanager
 def writing(path: str | Path, verb: str = "cannot write") -> Iterator[None]:
-    """Turn an ``OSError`` of the block into one ``FileError``: "<verb> <path>: <reason>"."""
+    """Turn an ``OSError`` of the block into one ``FileError``: "<verb> <path>: <reason>".
+
+    Args:
+        path: the file or folder the block works on, named in the message.
+        verb: what the block does, for the message.
+
+    Returns:
+        A context manager.
+
+    Raises:
+        FileError: an ``OSError`` inside the block.
+    """
     try:
         yield
     except OSError as exc:
@@ -61,7 +86,17 @@ def writing(path: str | Path, verb: str = "cannot write") -> Iterator[None]:
 
 
 def reading(path: str | Path) -> AbstractContextManager[None]:
-    """``writing`` for reads: "cannot read <path>: <reason>"."""
+    """``writing`` for reads: "cannot read <path>: <reason>".
+
+    Args:
+        path: the file or folder the block reads, named in the message.
+
+    Returns:
+        A context manager.
+
+    Raises:
+        FileError: an ``OSError`` inside the block.
+    """
     return writing(path, "cannot read")
 
 
@@ -70,7 +105,16 @@ def atomic_output(path: str | Path) -> Iterator[Path]:
     """A temp path beside ``path`` (same suffix, so writers that go by it keep working) to
     write; on success it is flushed to disk and moved onto ``path`` (``os.replace``); on any
     error (``KeyboardInterrupt`` included) it is removed and ``path`` stays as it was.
-    ``OSError`` becomes ``FileError`` naming ``path``."""
+
+    Args:
+        path: the file to write.
+
+    Returns:
+        A context manager giving the temp file's path.
+
+    Raises:
+        FileError: an ``OSError`` in the block or in the replacement, naming ``path``.
+    """
     path = Path(path)
     with writing(path):
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -91,7 +135,19 @@ def atomic_output(path: str | Path) -> Iterator[Path]:
 
 
 def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
-    """Write a matplotlib figure atomically (format from ``path``'s suffix) and close it."""
+    """Write a matplotlib figure atomically (format from ``path``'s suffix) and close it.
+
+    Args:
+        fig: the matplotlib figure (closed, also on error).
+        path: the image file; its suffix gives the format (none: PNG).
+        dpi: resolution, dots per inch.
+
+    Returns:
+        ``path``, as a ``Path``.
+
+    Raises:
+        FileError: ``path`` cannot be written.
+    """
     import matplotlib.pyplot as plt
 
     path = Path(path)
@@ -177,8 +233,18 @@ def _acquire(lock: Path, folder: Path, option: str) -> int:
 @contextmanager
 def output_folder(folder: str | Path, option: str = "--out") -> Iterator[Path]:
     """Create ``folder`` (and its parents) if needed and hold its lock for the block (see the
-    module docstring); ``option`` names the folder in messages. ``FileError`` when ``folder``
-    is a file, cannot be created or written, or another run holds it."""
+    module docstring); ``option`` names the folder in messages.
+
+    Args:
+        folder: the output folder.
+        option: how messages name it, e.g. the CLI option that gave it.
+
+    Returns:
+        A context manager giving ``folder`` as a ``Path``.
+
+    Raises:
+        FileError: ``folder`` is a file, cannot be created or written, or another run holds it.
+    """
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise FileError(f"{option} {folder} exists and is not a folder")
@@ -214,13 +280,29 @@ def _remove_if_empty(folder: Path, created: bool) -> None:
 
 
 def existing(folder: str | Path, names: tuple[str, ...]) -> list[str]:
-    """Those of ``names`` (files or folders) that exist in ``folder``."""
+    """Those of ``names`` (files or folders) that exist in ``folder``.
+
+    Args:
+        folder: the folder.
+        names: names of files or folders in it.
+
+    Returns:
+        The names that exist, in ``names``' order.
+    """
     return [name for name in names if (Path(folder) / name).exists()]
 
 
 def check_outputs(inputs: tuple[str, ...], outputs: list[tuple[str, str | None]]) -> None:
     """One clear error (FileError) when an output file (option, path) would replace an
-    input or another output, before anything is read or written."""
+    input or another output, before anything is read or written.
+
+    Args:
+        inputs: paths of the input files.
+        outputs: (option, path) of each output file; a None path is skipped.
+
+    Raises:
+        FileError: an output path that is also an input or another output.
+    """
     given = {Path(p).resolve(): p for p in inputs}
     taken: dict[Path, str] = {}
     for option, path in outputs:

@@ -28,7 +28,14 @@ _JOINT_KIND = {
 
 
 def quat_to_mat(quat: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) from MuJoCo quaternions (..., 4) in (w, x, y, z) order."""
+    """Rotation matrices (..., 3, 3) from MuJoCo quaternions (..., 4) in (w, x, y, z) order.
+
+    Args:
+        quat: (..., 4) quaternions (w, x, y, z), normalised here.
+
+    Returns:
+        (..., 3, 3) rotation matrices.
+    """
     quat = np.asarray(quat, dtype=float)
     quat = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
     w, x, y, z = np.moveaxis(quat, -1, 0)
@@ -49,28 +56,50 @@ class KinematicTree:
     Frames: each body's frame is given in its parent's frame (``pos`` m, ``rot``); joint
     anchors and axes in their body's frame; sites in their body's frame. Joint ``j`` is
     degree of freedom ``j`` (the tree has only 1-DoF joints, so nq == nv).
+
+    Attributes:
+        body_names: (nb,) body (link) names.
+        parent: (nb,) int, each body's parent body, -1 = world.
+        pos: (nb, 3) m, each body's origin in its parent's frame.
+        rot: (nb, 3, 3) each body's orientation in its parent's frame.
+        body_joints: the joints of each body, in order.
+        joint_names: (nv,) joint names.
+        joint_body: (nv,) int, each joint's body.
+        is_hinge: (nv,) bool; False = slide.
+        joint_pos: (nv, 3) m, each joint's anchor in its body's frame.
+        joint_axis: (nv, 3) each joint's unit axis in its body's frame.
+        joint_ref: (nv,) rad or m, the reference position (MuJoCo qpos0).
+        joint_range: (nv, 2) rad or m; (-inf, inf) when unlimited.
+        armature: (nv,) kg m^2 or kg, added to the mass matrix diagonal.
+        moves: (nv, nb) bool: [j, i] joint j moves body i.
+        subtree: (nb, nb) float: [k, i] 1 where body i is in the subtree of body k.
+        site_names: (ns,) site names.
+        site_body: (ns,) int, each site's body, -1 = world.
+        site_pos: (ns, 3) m, each site's position in its body's frame.
+        site_rot: (ns, 3, 3) each site's orientation in its body's frame.
+        nominal: the model's ``InertialParams``, numpy arrays (link frames).
     """
 
     body_names: tuple[str, ...]
-    parent: np.ndarray  # (nb,) int, -1 = world
-    pos: np.ndarray  # (nb, 3) m
-    rot: np.ndarray  # (nb, 3, 3)
-    body_joints: tuple[tuple[int, ...], ...]  # joints of each body, in order
+    parent: np.ndarray
+    pos: np.ndarray
+    rot: np.ndarray
+    body_joints: tuple[tuple[int, ...], ...]
     joint_names: tuple[str, ...]
-    joint_body: np.ndarray  # (nv,) int
-    is_hinge: np.ndarray  # (nv,) bool; False = slide
-    joint_pos: np.ndarray  # (nv, 3) m, anchor in body frame
-    joint_axis: np.ndarray  # (nv, 3) unit vector in body frame
-    joint_ref: np.ndarray  # (nv,) rad or m, the reference position (MuJoCo qpos0)
-    joint_range: np.ndarray  # (nv, 2) rad or m; (-inf, inf) when unlimited
-    armature: np.ndarray  # (nv,) kg m^2 or kg, added to the mass matrix diagonal
-    moves: np.ndarray  # (nv, nb) bool: joint j moves body i
-    subtree: np.ndarray  # (nb, nb) float: 1 where body i is in the subtree of body k (k, i)
+    joint_body: np.ndarray
+    is_hinge: np.ndarray
+    joint_pos: np.ndarray
+    joint_axis: np.ndarray
+    joint_ref: np.ndarray
+    joint_range: np.ndarray
+    armature: np.ndarray
+    moves: np.ndarray
+    subtree: np.ndarray
     site_names: tuple[str, ...]
-    site_body: np.ndarray  # (ns,) int
-    site_pos: np.ndarray  # (ns, 3) m
-    site_rot: np.ndarray  # (ns, 3, 3)
-    nominal: InertialParams  # numpy arrays
+    site_body: np.ndarray
+    site_pos: np.ndarray
+    site_rot: np.ndarray
+    nominal: InertialParams
 
     @property
     def nb(self) -> int:
@@ -87,7 +116,14 @@ class KinematicTree:
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices (..., 3, 3) of vectors (..., 3): skew(a) @ b = a x b."""
+    """Cross-product matrices (..., 3, 3) of vectors (..., 3): skew(a) @ b = a x b.
+
+    Args:
+        v: (..., 3) vectors.
+
+    Returns:
+        (..., 3, 3) skew-symmetric matrices.
+    """
     z = np.zeros(v.shape[:-1])
     x, y, w = v[..., 0], v[..., 1], v[..., 2]
     return np.stack(
@@ -108,21 +144,38 @@ class Lanes:
 
     (Rodrigues' formula about the joint's axis through its anchor, after the joint's constant
     offset from its parent lane; slides translate along their axis).
+
+    Attributes:
+        parent: (nv,) int, each lane's parent lane, -1 = world.
+        frame_of: per link, (lane, offset): the lane that carries it (-1 = world) and the
+            (4, 4) transform of the link's frame in the lane's (m).
+        rot_coef: (3, 3, 3, nv) the coefficients of R above, rot_coef[n, :, :, j].
+        pos_coef: (4, 3, nv) m, the coefficients of t above, pos_coef[n, :, j].
+        moving: the links some joint moves.
+        carried: per lane, the links attached to it.
+        subtree: (nv, nv) bool: [j, l] lane l moves with joint j.
+        related: (nv, nv) bool: [j, k] joint j moves the link of joint k.
     """
 
-    parent: np.ndarray  # (nv,) int: parent lane of each lane, -1 = world
-    frame_of: tuple[tuple[int, np.ndarray], ...]  # per link: (lane or -1 = world, (4, 4)
-    # offset of the link's frame in the lane's)
-    rot_coef: np.ndarray  # (3, 3, 3, nv): R coefficients, see above
-    pos_coef: np.ndarray  # (4, 3, nv) m: t coefficients, see above
-    moving: tuple[int, ...]  # links some joint moves
-    carried: tuple[tuple[int, ...], ...]  # per lane: the links attached to it
-    subtree: np.ndarray  # (nv, nv) bool: [j, l] lane l moves with joint j
-    related: np.ndarray  # (nv, nv) bool: [j, k] joint j moves the link of joint k
+    parent: np.ndarray
+    frame_of: tuple[tuple[int, np.ndarray], ...]
+    rot_coef: np.ndarray
+    pos_coef: np.ndarray
+    moving: tuple[int, ...]
+    carried: tuple[tuple[int, ...], ...]
+    subtree: np.ndarray
+    related: np.ndarray
 
     @staticmethod
     def of(tree: KinematicTree) -> "Lanes":
-        """The lanes of ``tree`` (use ``tree.lanes``, built once per tree)."""
+        """The lanes of ``tree`` (use ``tree.lanes``, built once per tree).
+
+        Args:
+            tree: the kinematic tree.
+
+        Returns:
+            Its ``Lanes``.
+        """
         nb, nv = tree.nb, tree.nv
         frame_of: list = [None] * nb
         parent = np.full(nv, -1)
@@ -176,7 +229,17 @@ def _name(model: mujoco.MjModel, objtype: mujoco.mjtObj, i: int, fallback: str) 
 
 
 def tree_from_mujoco(model: mujoco.MjModel) -> KinematicTree:
-    """Read the kinematic tree of ``model``; raises ModelError for unsupported models."""
+    """Read the kinematic tree of ``model``; raises ModelError for unsupported models.
+
+    Args:
+        model: a compiled ``mujoco.MjModel``.
+
+    Returns:
+        Its ``KinematicTree`` (bodies without the world body, nominal inertials).
+
+    Raises:
+        ModelError: the model has no joints, or a ball or free joint.
+    """
     if model.njnt == 0:
         raise ModelError("the model has no joints: nothing to move or identify")
     kinds = [_JOINT_KIND.get(int(t), str(t)) for t in model.jnt_type]

@@ -25,9 +25,18 @@ _HEADERS = {
 
 
 def read_npz(path: str | Path) -> dict[str, np.ndarray]:
-    """The arrays of the ``.npz`` at ``path`` by name (no pickled objects). Raises
-    ``OSError``, ``ValueError`` or ``zipfile.BadZipFile`` (a damaged archive: a member's size or
-    CRC-32 does not match), as ``np.load`` does."""
+    """The arrays of the ``.npz`` at ``path`` by name (no pickled objects).
+
+    Args:
+        path: the ``.npz`` file.
+
+    Returns:
+        {name: array}, the member names without their ``.npy``.
+
+    Raises:
+        OSError, ValueError or zipfile.BadZipFile: as ``np.load`` does; ``BadZipFile`` also
+            for a damaged archive (a member's size or CRC-32 does not match).
+    """
     out = {}
     with open(path, "rb") as f, zipfile.ZipFile(f) as archive:
         for info in archive.infolist():

@@ -30,6 +30,15 @@ def add_point_mass(params: InertialParams, body: int, mass, point) -> InertialPa
     The link's mass, centre of mass and rotational inertia (about the new centre of mass, by
     the parallel-axis theorem) become those of the link and the point mass together. Pure and
     jit/grad-able; a zero mass leaves the params unchanged.
+
+    Args:
+        params: the link inertials (COMs and inertias in the link frames).
+        body: index of the link (body) the point mass is fixed to.
+        mass: the point mass, kg (scalar).
+        point: (3,) m, where it sits, in the link's frame.
+
+    Returns:
+        ``params`` with link ``body``'s mass (kg), COM (m) and inertia (kg m^2) replaced.
     """
     mass_all, com_all = jnp.asarray(params.mass), jnp.asarray(params.com)
     inertia_all = jnp.asarray(params.inertia)
@@ -48,7 +57,14 @@ def add_point_mass(params: InertialParams, body: int, mass, point) -> InertialPa
 
 def gyration_radii(params: InertialParams) -> np.ndarray:
     """(nb,) m: each link's radius of gyration about its centre of mass, sqrt(trace(I) / 2 m)
-    (a uniform rod of length L: 0.29 L); 0 for a massless link."""
+    (a uniform rod of length L: 0.29 L); 0 for a massless link.
+
+    Args:
+        params: the link inertials: mass (nb,) kg, inertia (nb, 3, 3) kg m^2.
+
+    Returns:
+        (nb,) m, numpy.
+    """
     mass = np.asarray(params.mass, float)
     trace = np.trace(np.asarray(params.inertia, float), axis1=-2, axis2=-1)
     return np.sqrt(np.maximum(trace, 0.0) / (2.0 * np.maximum(mass, 1e-12))) * (mass > 0)

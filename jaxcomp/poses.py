@@ -30,7 +30,16 @@ START_EFFORT_FRACTION = 0.5
 
 
 def inside_limits(q: np.ndarray, limits: np.ndarray, margin: float = LIMIT_MARGIN) -> np.ndarray:
-    """``q`` (n,) moved inside ``limits`` (n, 2) by ``margin`` of each finite range."""
+    """``q`` (n,) moved inside ``limits`` (n, 2) by ``margin`` of each finite range.
+
+    Args:
+        q: (n,) joint positions, rad or m.
+        limits: (n, 2) lower and upper limits, rad or m (inf where unlimited).
+        margin: fraction of each finite range to keep from its limits.
+
+    Returns:
+        (n,) rad or m, ``q`` clipped into the shrunk ranges.
+    """
     lo, hi = limits[:, 0], limits[:, 1]
     finite = np.isfinite(lo) & np.isfinite(hi)
     span = np.where(finite, hi - lo, 0.0)
@@ -40,7 +49,14 @@ def inside_limits(q: np.ndarray, limits: np.ndarray, margin: float = LIMIT_MARGI
 
 
 def rest_pose(robot: Robot) -> np.ndarray:
-    """The model's ``qpos0`` (its reference pose) moved inside the joint limits, (nv,)."""
+    """The model's ``qpos0`` (its reference pose) moved inside the joint limits, (nv,).
+
+    Args:
+        robot: the model.
+
+    Returns:
+        (nv,) rad or m.
+    """
     return inside_limits(robot.tree.joint_ref.copy(), robot.joint_limits)
 
 
@@ -60,7 +76,15 @@ def start_pose_scores(robot: Robot, q: np.ndarray) -> np.ndarray:
     singularity) over the arm's reach, times the distance to the nearest limit (fraction of the
     range, saturating at ``START_MARGIN``). Poses with the end effector below the first joint,
     or whose gravity torque takes more than ``START_EFFORT_FRACTION`` of an effort limit,
-    score -1."""
+    score -1.
+
+    Args:
+        robot: the model (its end-effector site, nominal inertials and default gravity).
+        q: (k, nv) candidate poses, rad or m.
+
+    Returns:
+        (k,) scores, 1/rad (higher is better), -1 for refused poses.
+    """
     tree, site = robot.tree, robot.site_index(robot.end_effector)
     params, g = robot.nominal_params(), jnp.asarray(robot.default_gravity)
 
@@ -90,6 +114,15 @@ def start_pose_scores(robot: Robot, q: np.ndarray) -> np.ndarray:
 def start_pose(robot: Robot, count: int = START_CANDIDATES, seed: int = 0) -> np.ndarray:
     """A start pose (nv,) for the controller chosen on the model: of ``count`` random poses
     away from the limits, the best by ``start_pose_scores`` (well away from singularities and
-    limits, end effector above the first joint, gravity within half the effort limits)."""
+    limits, end effector above the first joint, gravity within half the effort limits).
+
+    Args:
+        robot: the model.
+        count: how many random candidate poses to score.
+        seed: seed of the candidates' random generator.
+
+    Returns:
+        (nv,) rad or m.
+    """
     q = _candidates(robot, count, np.random.default_rng(seed))
     return q[int(np.argmax(start_pose_scores(robot, q)))].copy()

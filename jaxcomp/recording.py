@@ -16,7 +16,7 @@ One ``.npz``, SI units, n = the robot's current-controlled joints:
 
 Any further array whose first axis has length N (the controller adds ``target``, ``ee``,
 ``base``, ``command``, and the impedance controller its external force estimate
-``current_model``, ``wrench``, ``wrench_band``: ``jaxcomp.control.loop``) is kept in
+``current_model``, ``wrench``, ``wrench_band``: ``jaxcomp.control.run_recording``) is kept in
 ``Recording.extra``. Loading validates everything and raises
 one ``InputError`` naming the field; nothing is silently dropped.
 
@@ -57,7 +57,23 @@ _MAX_ANGLE = 2 * np.pi + 0.5
 
 @dataclass(frozen=True, eq=False)
 class Recording:
-    """A validated recording (see the module docstring for fields and units)."""
+    """A validated recording (see the module docstring for the format).
+
+    Attributes:
+        t: (N,) s, increasing.
+        q: (N, n) rad (slides: m), the current-controlled joints' positions.
+        dq: (N, n) rad/s (slides: m/s).
+        current: (N, n) A, the motor currents.
+        joint: (N,) int, the swept joint's index, -1 outside sweeps.
+        direction: (N,) int, +1 or -1 in a sweep, 0 outside.
+        model: a built-in robot name or a path to an MJCF or URDF file.
+        gravity: (3,) m/s^2 in the base frame.
+        payload_mass: kg.
+        payload_com: (3,) m, the payload's centre of mass in the end-effector frame.
+        extra: {name: (N, ...) array} of further per-sample fields.
+        joints: the current-controlled joints' names, or None (the model's default joints).
+        current_lag: s, how long before its pose a sample's current flowed.
+    """
 
     t: np.ndarray
     q: np.ndarray
@@ -101,11 +117,28 @@ class Recording:
         return out
 
     def save(self, path: str | Path) -> Path:
-        """Write the ``.npz`` atomically (temp file + rename)."""
+        """Write the ``.npz`` atomically (temp file + rename).
+
+        Args:
+            path: the file (written as given: no ``.npz`` appended).
+
+        Returns:
+            ``path``, as a ``Path``.
+
+        Raises:
+            FileError: ``path`` cannot be written.
+        """
         return _save_npz(path, self.to_arrays())
 
     def select(self, mask: np.ndarray) -> Recording:
-        """The samples where ``mask`` (N,) is true, same metadata."""
+        """The samples where ``mask`` (N,) is true, same metadata.
+
+        Args:
+            mask: (N,) bool (or indices into the samples).
+
+        Returns:
+            The ``Recording`` of those samples.
+        """
         pick = {k: getattr(self, k)[mask] for k in _ARRAYS}
         extra = {k: v[mask] for k, v in self.extra.items()}
         return Recording(
@@ -129,7 +162,15 @@ def _save_npz(path: str | Path, arrays: Mapping[str, Any]) -> Path:
 
 def setting_differences(earlier: Mapping[str, Any], now: Mapping[str, Any]) -> str:
     """What differs between two settings mappings, for people: "seed 0 then, 7 now; the
-    truth differs" (a scalar setting: both values; a list or mapping: that it differs)."""
+    truth differs" (a scalar setting: both values; a list or mapping: that it differs).
+
+    Args:
+        earlier: the settings then.
+        now: the settings now.
+
+    Returns:
+        The differences joined by "; ", empty when there are none.
+    """
     said = []
     for key in sorted(set(earlier) | set(now), key=str):
         a, b = earlier.get(key), now.get(key)
@@ -190,9 +231,20 @@ def validate(
     """A ``Recording`` from a mapping of fields (e.g. an opened ``.npz``), fully checked; an
     array already of its field's dtype (float64, int64) is kept, not copied.
 
-    ``require_sweep``: refuse a recording without any swept sample (what identification
-    needs); a controller's log has none. ``robots``: the robots of recordings checked before,
-    by model and joints, kept and reused (``load_recordings``).
+    Args:
+        data: the fields by name (see the module docstring).
+        source: what messages name the recording by (e.g. its path).
+        require_sweep: refuse a recording without any swept sample (what identification
+            needs); a controller's log has none.
+        robots: the robots of recordings checked before, by (model, joints), kept and reused
+            (``load_recordings``); None: none kept.
+
+    Returns:
+        The ``Recording``.
+
+    Raises:
+        InputError: a missing, malformed or implausible field (degrees, millimetres, an
+            unknown model ...), the message starting with ``source``.
     """
     try:
         return _validate(data, require_sweep, {} if robots is None else robots)
@@ -323,7 +375,18 @@ def _joint_names(data: Mapping[str, Any]) -> tuple[str, ...] | None:
 
 def load_recordings(paths: Iterable[str | Path], require_sweep: bool = True) -> Iterator[Recording]:
     """``load_recording`` of each path in turn, as the caller asks for them; recordings of one
-    model (and joints) share one robot, looked up once."""
+    model (and joints) share one robot, looked up once.
+
+    Args:
+        paths: the ``.npz`` files.
+        require_sweep: refuse recordings without a sweep (``validate``).
+
+    Returns:
+        An iterator of the ``Recording`` of each path, in order.
+
+    Raises:
+        InputError: a recording that is missing, unreadable or invalid, when it is reached.
+    """
     robots: dict[tuple, Robot] = {}
     for path in paths:
         yield load_recording(path, require_sweep, robots)
@@ -334,8 +397,17 @@ def load_recording(
 ) -> Recording:
     """Read and validate a recording ``.npz``; ``InputError`` naming the problem otherwise.
 
-    ``require_sweep=False`` also accepts recordings without sweeps (controller logs).
-    ``robots``: see ``validate``."""
+    Args:
+        path: the ``.npz`` file.
+        require_sweep: False also accepts recordings without sweeps (controller logs).
+        robots: robots kept between calls, see ``validate``.
+
+    Returns:
+        The ``Recording``.
+
+    Raises:
+        InputError: no such file, not a readable ``.npz``, or an invalid recording.
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError(f"recording not found: {path}")
@@ -439,13 +511,31 @@ class RecordingWriter:
         return self._count
 
     def begin(self, segment: Any = None) -> None:
-        """Start a segment (e.g. one sweep of a plan); ``segment`` is a JSON-able label."""
+        """Start a segment (e.g. one sweep of a plan); ``segment`` is a JSON-able label.
+
+        Args:
+            segment: the segment's label, kept in the manifest when it ends; None: none.
+        """
         self._segment = segment
 
     def append(
         self, t: float, q, dq, current, joint: int = -1, direction: int = 0, **extra
     ) -> None:
-        """Add one sample (format units)."""
+        """Add one sample (format units).
+
+        Args:
+            t: s.
+            q: (n,) rad (slides: m).
+            dq: (n,) rad/s (slides: m/s).
+            current: (n,) A.
+            joint: the swept joint's index, -1 outside sweeps.
+            direction: +1 or -1 in a sweep, 0 outside.
+            **extra: the declared extra fields, each of its per-sample shape.
+
+        Raises:
+            InputError: a declared extra field missing or an undeclared one given.
+            FileError: a part file (written every ``flush_every`` samples) cannot be written.
+        """
         buf = self._buf
         missing = [k for k in self.meta["extra"] if k not in extra]
         unknown = [k for k in extra if k not in self.meta["extra"]]
@@ -539,6 +629,16 @@ def recover(path: str | Path) -> Recording:
 
     Includes the samples of an unfinished segment (up to its last flush); writes ``path`` and
     keeps the parts, so a later ``RecordingWriter(..., resume=True)`` can still go on.
+
+    Args:
+        path: the final ``.npz`` the writer was writing.
+
+    Returns:
+        The joined ``Recording`` (validated), also saved to ``path``.
+
+    Raises:
+        InputError: nothing to recover, or the joined samples are not a valid recording.
+        FileError: a part cannot be read or ``path`` cannot be written.
     """
     path = Path(path)
     parts = path.with_name(path.name + ".parts")
@@ -553,7 +653,18 @@ def recover(path: str | Path) -> Recording:
 def read_manifest(path: str | Path) -> dict | None:
     """The manifest of an interrupted ``RecordingWriter`` of ``path`` (its ``meta``,
     ``completed`` segments, their part ``files`` and the ``open`` segment's); None when
-    there is none. ``InputError`` for a manifest that cannot be read."""
+    there is none.
+
+    Args:
+        path: the final ``.npz`` of the writer.
+
+    Returns:
+        The manifest, a dict, or None.
+
+    Raises:
+        InputError: a manifest that is not one.
+        FileError: a manifest that cannot be read.
+    """
     path = Path(path)
     where = path.with_name(path.name + ".parts") / "manifest.json"
     if not where.is_file():

@@ -81,7 +81,14 @@ def _custom_text(model: mujoco.MjModel, name: str) -> str | None:
 
 def coupled_joints(model: mujoco.MjModel) -> set[int]:
     """Joint ids that an active equality constraint ties to another joint (joint equalities,
-    and tendon equalities through the joints of fixed tendons)."""
+    and tendon equalities through the joints of fixed tendons).
+
+    Args:
+        model: a compiled ``mujoco.MjModel``.
+
+    Returns:
+        The joint ids.
+    """
     out: set[int] = set()
     for e in range(model.neq):
         if not model.eq_active0[e]:
@@ -103,7 +110,15 @@ def coupled_joints(model: mujoco.MjModel) -> set[int]:
 
 
 def held_position(model: mujoco.MjModel, j: int) -> float:
-    """qpos0 of a hinge or slide joint moved inside its limits by ``LIMIT_MARGIN`` of its range."""
+    """qpos0 of a hinge or slide joint moved inside its limits by ``LIMIT_MARGIN`` of its range.
+
+    Args:
+        model: a compiled ``mujoco.MjModel``.
+        j: the joint's id.
+
+    Returns:
+        The held position, rad (hinge) or m (slide).
+    """
     q = float(model.qpos0[model.jnt_qposadr[j]])
     if not model.jnt_limited[j]:
         return q
@@ -126,8 +141,21 @@ def _check_joint_names(names: Sequence[str], known: Sequence[str], source: str) 
 def plan_reduction(
     model: mujoco.MjModel, joints: Sequence[str] | None = None, site: str | None = None
 ) -> Reduction:
-    """The ``Reduction`` of a compiled model (see the module docstring); ``ModelError`` when no
-    joint can be current-controlled, a free joint is present, or a joint moves no mass."""
+    """The ``Reduction`` of a compiled model (see the module docstring).
+
+    Args:
+        model: the compiled model file (``mujoco.MjModel``), not yet reduced.
+        joints: names of the joints to current-control (CLI ``--joints``); None: the model's.
+        site: the end-effector site's name (CLI ``--site``), used when the model names none.
+
+    Returns:
+        The ``Reduction``.
+
+    Raises:
+        ModelError: a free joint; unknown or repeated joint names, or listed joints that cannot
+            be current-controlled; no joint to current-control; a joint that moves no mass; an
+            end-effector site the model does not have.
+    """
     names = [_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(model.njnt)]
     kinds = [_JOINT_KINDS[mujoco.mjtJoint(int(t))] for t in model.jnt_type]
     free = [n for n, k in zip(names, kinds, strict=True) if k == "free"]
@@ -187,7 +215,14 @@ def plan_reduction(
 
 def as_is(model: mujoco.MjModel) -> Reduction:
     """The identity ``Reduction`` of a model used unchanged: every joint but a mobile base's is
-    current-controlled; the site is ``jaxcomp_end_effector`` else ``end_effector``."""
+    current-controlled; the site is ``jaxcomp_end_effector`` else ``end_effector``.
+
+    Args:
+        model: a compiled ``mujoco.MjModel``.
+
+    Returns:
+        The ``Reduction``, welding nothing and adding no site.
+    """
     names = [_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) for j in range(model.njnt)]
     site = _custom_text(model, "jaxcomp_end_effector") or ADDED_SITE
     arm = tuple(n for n in names if n not in BASE_JOINTS)
@@ -287,7 +322,13 @@ def _uses(obj, names: set[str]) -> bool:
 def reduce_spec(spec: mujoco.MjSpec, model: mujoco.MjModel, reduction: Reduction) -> None:
     """Apply ``reduction`` to ``spec`` (compiled as ``model``) in place: weld the held joints,
     drop what refers to them (equalities, tendons, actuators, sensors), rewrite keyframes to the
-    kept joints, add the end-effector site where needed."""
+    kept joints, add the end-effector site where needed.
+
+    Args:
+        spec: the model file's ``mujoco.MjSpec``, edited in place.
+        model: ``spec`` compiled, unreduced (joint ids, positions and keyframes).
+        reduction: what to weld and add (``plan_reduction``).
+    """
     held = set(reduction.held)
     if held:
         dropped_tendons = set()

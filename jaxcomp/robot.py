@@ -1,8 +1,8 @@
 """``load_robot`` and ``Robot``: a compiled MuJoCo model with its dynamics in JAX.
 
-The ``Robot`` methods validate their inputs (shape, NaN, names) and call jitted pure functions
-of ``jaxcomp.dynamics`` that close over the model's constants. Units: q in rad (hinge) or m
-(slide), dq in rad/s or m/s, torques in N m or N, positions in m, world (base) frame.
+The ``Robot`` methods validate their inputs (shape, NaN, names: ``InputError``) and call jitted
+pure functions of ``jaxcomp.dynamics`` that close over the model's constants. Units: q in rad
+(hinge) or m (slide), dq in rad/s or m/s, torques in N m or N, positions in m, world (base) frame.
 """
 
 import hashlib
@@ -82,7 +82,14 @@ def _compile(name_or_path: str | Path) -> tuple[str, Path, mujoco.MjModel]:
 
 def model_digest(model: mujoco.MjModel) -> str:
     """SHA-256 of a compiled model (MuJoCo's binary MJB): equal for equal models, different
-    after any edit, whatever the name or file."""
+    after any edit, whatever the name or file.
+
+    Args:
+        model: a compiled ``mujoco.MjModel``.
+
+    Returns:
+        The digest, 64 hex digits.
+    """
     buffer = np.empty(mujoco.mj_sizeModel(model), np.uint8)
     mujoco.mj_saveModel(model, None, buffer)
     return hashlib.sha256(buffer.tobytes()).hexdigest()
@@ -109,13 +116,24 @@ def load_robot(
     """A ``Robot`` from a built-in name (``builtin_models()``) or an MJCF / URDF path.
 
     The robot is the model reduced to its current-controlled joints (``jaxcomp.reduction``):
-    by default the hinge joints that no equality constraint couples, else the model's
-    ``jaxcomp_joints`` custom text, else ``joints`` (names); the other joints are welded at their
-    held position. ``site`` names the end-effector site when the model names none.
+    ``joints`` (names) when given, else the model's ``jaxcomp_joints`` custom text, else the
+    hinge joints that no equality constraint couples; the other joints are welded at their
+    held position.
 
     While a robot loaded from the same, unchanged model is still in use somewhere, that robot is
     returned, so what it keeps (``Robot.cached``: compiled functions, plans, simulators) serves
     every caller.
+
+    Args:
+        name_or_path: a built-in name, MJCF/URDF path or ``Robot`` (kept unless ``joints`` differ).
+        joints: names of the joints to current-control; None: the model's.
+        site: the end-effector site's name, used when the model names none.
+
+    Returns:
+        The ``Robot``.
+
+    Raises:
+        ModelError: an unknown name or file, a model MuJoCo cannot compile, bad joints or site.
     """
     if isinstance(name_or_path, Robot):
         if joints is not None and tuple(joints) != name_or_path.controlled_joints:
@@ -212,7 +230,14 @@ class Robot:
         return InertialParams(jnp.asarray(n.mass), jnp.asarray(n.com), jnp.asarray(n.inertia))
 
     def custom_numeric(self, name: str) -> np.ndarray | None:
-        """A ``<custom><numeric>`` array of the model, or None when absent."""
+        """A ``<custom><numeric>`` array of the model, or None when absent.
+
+        Args:
+            name: the numeric's name.
+
+        Returns:
+            A copy of its data (size,), or None.
+        """
         i = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_NUMERIC, name)
         if i < 0:
             return None
@@ -220,7 +245,14 @@ class Robot:
         return self.model.numeric_data[adr : adr + size].copy()
 
     def custom_text(self, name: str) -> str | None:
-        """A ``<custom><text>`` string of the model, or None when absent."""
+        """A ``<custom><text>`` string of the model, or None when absent.
+
+        Args:
+            name: the text's name.
+
+        Returns:
+            Its text, or None.
+        """
         i = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_TEXT, name)
         if i < 0:
             return None
@@ -257,7 +289,17 @@ class Robot:
     def pose(self, name: str) -> np.ndarray:
         """Joint positions (nv,) of a named pose (MJCF keyframe), rad or m. Without such a
         keyframe, "home" and "preferred" (the nullspace posture) are ``start_pose``, "rest" is
-        ``rest_pose`` and "zero" is all zeros moved inside the limits."""
+        ``rest_pose`` and "zero" is all zeros moved inside the limits.
+
+        Args:
+            name: a keyframe's name, or "home", "preferred", "rest" or "zero".
+
+        Returns:
+            (nv,) rad or m, a copy.
+
+        Raises:
+            InputError: an unknown pose.
+        """
         if name in self.named_poses:
             return self.named_poses[name].copy()
         if name in DEFAULT_POSES:
@@ -321,7 +363,17 @@ class Robot:
 
     def joint_numeric(self, name: str) -> np.ndarray | None:
         """A per-joint ``<custom><numeric>`` for the current-controlled joints (n,) (NaN for a
-        joint it gives no value), or None when absent. A single value applies to every joint."""
+        joint it gives no value), or None when absent. A single value applies to every joint.
+
+        Args:
+            name: the numeric's name.
+
+        Returns:
+            (n,) floats, or None.
+
+        Raises:
+            ModelError: its entries fit neither the declared joints nor the file's.
+        """
         data = self.custom_numeric(name)
         if data is None:
             return None
@@ -343,13 +395,32 @@ class Robot:
 
     def with_payload(self, params: InertialParams, mass, com) -> InertialParams:
         """``params`` plus a point payload of ``mass`` kg at ``com`` (3,) m in the
-        end-effector site's frame, merged into the site's link."""
+        end-effector site's frame, merged into the site's link.
+
+        Args:
+            params: the link inertials (link frames).
+            mass: the payload's mass, kg.
+            com: (3,) m, its centre of mass in the end-effector site's frame.
+
+        Returns:
+            ``params`` with the site link's mass, COM and inertia replaced (``add_point_mass``).
+        """
         s = self.site_index(self.end_effector)
         point = self.tree.site_pos[s] + self.tree.site_rot[s] @ jnp.asarray(com)
         return add_point_mass(params, int(self.tree.site_body[s]), mass, point)
 
     def link_index(self, link: str) -> int:
-        """Index of a link (body) by name."""
+        """Index of a link (body) by name.
+
+        Args:
+            link: the link's name.
+
+        Returns:
+            Its index into ``link_names`` and the params' arrays.
+
+        Raises:
+            InputError: an unknown link.
+        """
         try:
             return self.tree.body_names.index(link)
         except ValueError:
@@ -358,7 +429,17 @@ class Robot:
             ) from None
 
     def site_index(self, site: str) -> int:
-        """Index of a site by name."""
+        """Index of a site by name.
+
+        Args:
+            site: the site's name.
+
+        Returns:
+            Its index into ``site_names``.
+
+        Raises:
+            InputError: an unknown site.
+        """
         try:
             return self.tree.site_names.index(site)
         except ValueError:
@@ -367,7 +448,18 @@ class Robot:
 
     # ----------------------------------------------------------------- input checks
     def check_q(self, q, what: str = "q") -> jax.Array:
-        """q as a float array of shape (nv,), or InputError naming the problem."""
+        """q as a float array of shape (nv,), or InputError naming the problem.
+
+        Args:
+            q: (nv,) rad or m (velocities: rad/s or m/s); a tracer: its shape only.
+            what: its name in messages.
+
+        Returns:
+            (nv,) JAX array.
+
+        Raises:
+            InputError: not numbers, a shape other than (nv,), or NaN or inf.
+        """
         if isinstance(q, jax.core.Tracer):
             arr = q
         else:
@@ -388,6 +480,17 @@ class Robot:
         return self.nominal_params(), jnp.asarray(self.default_gravity)
 
     def check_gravity(self, gravity) -> jax.Array:
+        """``gravity`` as a JAX array (3,), or the model's default gravity for None.
+
+        Args:
+            gravity: (3,) m/s^2 in the world (base) frame, or None.
+
+        Returns:
+            (3,) m/s^2.
+
+        Raises:
+            InputError: not a finite vector of shape (3,).
+        """
         if gravity is None:
             return self._device_defaults[1]
         g = _floats(gravity, "gravity", "(3,) m/s^2")
@@ -397,7 +500,17 @@ class Robot:
 
     def check_params(self, params: InertialParams | None) -> InertialParams:
         """``params`` (None: the nominal ones) or InputError: each field of its shape, finite,
-        no negative link mass (values are checked unless traced, e.g. under ``jax.grad``)."""
+        no negative link mass (values are checked unless traced, e.g. under ``jax.grad``).
+
+        Args:
+            params: mass (nb,) kg, com (nb, 3) m, inertia (nb, 3, 3) kg m^2 (link frames).
+
+        Returns:
+            ``params`` itself, or the nominal params.
+
+        Raises:
+            InputError: a wrong shape, NaN or inf, or a negative mass.
+        """
         if params is None:
             return self._device_defaults[0]
         nb = self.tree.nb
@@ -428,6 +541,13 @@ class Robot:
         """``build()``, made once per robot and key and kept on the robot (no global caches).
 
         For anything derived from this robot's model alone: compiled functions, plans, gains.
+
+        Args:
+            key: what names the value among the robot's.
+            build: makes the value (called once).
+
+        Returns:
+            The value.
         """
         if key not in self._cache:
             self._cache[key] = build()
@@ -437,28 +557,69 @@ class Robot:
         return self.cached(("jit", key), lambda: jax.jit(build()))
 
     def forward_kinematics(self, q) -> dynamics.Frames:
-        """World frames of all links and joints (see ``dynamics.Frames``)."""
+        """World frames of all links and joints (see ``dynamics.Frames``).
+
+        Args:
+            q: joint positions (nv,), rad (slides: m).
+
+        Returns:
+            ``dynamics.Frames`` of the links and joints, world frame.
+        """
         return self._fn("fk", lambda: lambda q: dynamics.forward_kinematics(self.tree, q))(
             self.check_q(q)
         )
 
     def gravity(self, q, params: InertialParams | None = None, gravity=None) -> jax.Array:
-        """g(q) (nv,) N m: joint torques holding the arm against gravity (m/s^2, base frame)."""
+        """g(q) (nv,) N m: joint torques holding the arm against gravity (m/s^2, base frame).
+
+        Args:
+            q: joint positions (nv,), rad (slides: m).
+            params: link inertials, link frames (``check_params``); default the nominal.
+            gravity: (3,) m/s^2, world (base) frame; default ``default_gravity``.
+
+        Returns:
+            g(q) (nv,), N m (N for a slide).
+        """
         fn = self._fn("gravity", lambda: lambda q, p, g: dynamics.gravity(self.tree, q, p, g))
         return fn(self.check_q(q), self.check_params(params), self.check_gravity(gravity))
 
     def mass_matrix(self, q, params: InertialParams | None = None) -> jax.Array:
-        """M(q) (nv, nv), kg m^2 (armature included)."""
+        """M(q) (nv, nv), kg m^2 (armature included).
+
+        Args:
+            q: joint positions (nv,), rad (slides: m).
+            params: link inertials, link frames (``check_params``); default the nominal.
+
+        Returns:
+            M(q) (nv, nv): kg m^2 between hinges, kg between slides, kg m across.
+        """
         fn = self._fn("mass", lambda: lambda q, p: dynamics.mass_matrix(self.tree, q, p))
         return fn(self.check_q(q), self.check_params(params))
 
     def coriolis(self, q, dq, params: InertialParams | None = None) -> jax.Array:
-        """C(q, dq) dq (nv,), N m."""
+        """C(q, dq) dq (nv,), N m.
+
+        Args:
+            q, dq: joint positions (nv,) rad and velocities (nv,) rad/s (slides: m, m/s).
+            params: link inertials, link frames (``check_params``); default the nominal.
+
+        Returns:
+            C(q, dq) dq (nv,), N m (N for a slide).
+        """
         fn = self._fn("cor", lambda: lambda q, v, p: dynamics.coriolis(self.tree, q, v, p))
         return fn(self.check_q(q), self.check_q(dq, "dq"), self.check_params(params))
 
     def bias(self, q, dq, params: InertialParams | None = None, gravity=None) -> jax.Array:
-        """C(q, dq) dq + g(q) (nv,), N m."""
+        """C(q, dq) dq + g(q) (nv,), N m.
+
+        Args:
+            q, dq: joint positions (nv,) rad and velocities (nv,) rad/s (slides: m, m/s).
+            params: link inertials, link frames (``check_params``); default the nominal.
+            gravity: (3,) m/s^2, world (base) frame; default ``default_gravity``.
+
+        Returns:
+            C(q, dq) dq + g(q) (nv,), N m (N for a slide).
+        """
         fn = self._fn("bias", lambda: lambda q, v, p, g: dynamics.bias(self.tree, q, v, p, g))
         return fn(
             self.check_q(q),
@@ -472,26 +633,64 @@ class Robot:
         return self._fn(f"{kind}:{site}", lambda: lambda *args: impl(self.tree, *args, s))
 
     def jacobian(self, q, site: str) -> jax.Array:
-        """(6, nv) site Jacobian, world-aligned rows (vx, vy, vz, wx, wy, wz)."""
+        """(6, nv) site Jacobian, world-aligned rows (vx, vy, vz, wx, wy, wz).
+
+        Args:
+            q, site: joint positions (nv,) rad (slides: m), and the site's name.
+
+        Returns:
+            (6, nv): linear rows m/rad (1 for a slide), angular rad/rad (0 for a slide).
+        """
         return self._site_fn("jac", site, dynamics.site_jacobian)(self.check_q(q))
 
     def site_position(self, q, site: str) -> jax.Array:
-        """(3,) world position of a site, m."""
+        """(3,) world position of a site, m.
+
+        Args:
+            q, site: joint positions (nv,) rad (slides: m), and the site's name.
+
+        Returns:
+            (3,) m, world frame.
+        """
         return self._site_fn("pose", site, dynamics.site_pose)(self.check_q(q))[0]
 
     def site_pose(self, q, site: str) -> tuple[jax.Array, jax.Array]:
-        """World position (3,) m and rotation matrix (3, 3) of a site."""
+        """World position (3,) m and rotation matrix (3, 3) of a site.
+
+        Args:
+            q, site: joint positions (nv,) rad (slides: m), and the site's name.
+
+        Returns:
+            (position (3,) m, rotation (3, 3): columns are the site's axes), world frame.
+        """
         return self._site_fn("pose", site, dynamics.site_pose)(self.check_q(q))
 
     def subtree_com(self, q, params: InertialParams | None = None):
-        """Centre of mass (nb, 3) m and mass (nb,) kg of every link's subtree."""
+        """Centre of mass (nb, 3) m and mass (nb,) kg of every link's subtree.
+
+        Args:
+            q: joint positions (nv,), rad (slides: m).
+            params: link inertials, link frames (``check_params``); default the nominal.
+
+        Returns:
+            (centre of mass (nb, 3) m in the world frame, mass (nb,) kg).
+        """
         fn = self._fn("subcom", lambda: lambda q, p: dynamics.subtree_com(self.tree, q, p))
         return fn(self.check_q(q), self.check_params(params))
 
     def operational_space(
         self, q, dq, site: str, params: InertialParams | None = None
     ) -> dynamics.OperationalSpace:
-        """Lambda, mu, J_bar and nullspace projector N of a site's position task."""
+        """Lambda, mu, J_bar and nullspace projector N of a site's position task.
+
+        Args:
+            q, dq: joint positions (nv,) rad and velocities (nv,) rad/s (slides: m, m/s).
+            site: the site's name.
+            params: link inertials, link frames (``check_params``); default the nominal.
+
+        Returns:
+            ``dynamics.OperationalSpace`` of the site's position, world frame.
+        """
         s = self.site_index(site)
         fn = self._fn(
             f"os:{site}",

@@ -51,12 +51,26 @@ DEFAULT_CURRENT_LIMIT = 11.0
 
 
 def arm_joint_indices(robot: Robot) -> np.ndarray:
-    """Indices (into ``robot.joint_names``) of the current-controlled joints, in order."""
+    """Indices (into ``robot.joint_names``) of the current-controlled joints, in order.
+
+    Args:
+        robot: the model.
+
+    Returns:
+        (n,) int.
+    """
     return np.array([i for i, n in enumerate(robot.joint_names) if n not in BASE_JOINTS], int)
 
 
 def arm_joint_names(robot: Robot) -> tuple[str, ...]:
-    """Names of the current-controlled joints, in order (the params' ``joints``)."""
+    """Names of the current-controlled joints, in order (the params' ``joints``).
+
+    Args:
+        robot: the model.
+
+    Returns:
+        (n,) names.
+    """
     return tuple(robot.joint_names[i] for i in arm_joint_indices(robot))
 
 
@@ -162,7 +176,14 @@ class RobotParams:
     @classmethod
     def nominal(cls, robot: Robot) -> RobotParams:
         """The model's own figures: ratio from ``jaxcomp_nominal_ratio`` (else
-        ``DEFAULT_RATIO``, also for a joint it gives none), no friction."""
+        ``DEFAULT_RATIO``, also for a joint it gives none), no friction.
+
+        Args:
+            robot: the model.
+
+        Returns:
+            Params of ratio (n,) A/(N m), friction (n,) zeros A, no COM offsets.
+        """
         n = len(arm_joint_indices(robot))
         ratio = robot.joint_numeric("jaxcomp_nominal_ratio")
         ratio = np.full(n, DEFAULT_RATIO) if ratio is None else ratio
@@ -177,7 +198,17 @@ class RobotParams:
 
     # ----------------------------------------------------------------- checks
     def check(self, robot: Robot) -> RobotParams:
-        """Raise InputError unless the params fit ``robot`` (joint count, link names)."""
+        """Raise InputError unless the params fit ``robot`` (joint count, link names).
+
+        Args:
+            robot: the model.
+
+        Returns:
+            The params themselves.
+
+        Raises:
+            InputError: other joints, another joint count, or a COM offset of an unknown link.
+        """
         names = arm_joint_names(robot)
         if self.joints is not None and self.joints != names:
             raise InputError(
@@ -198,7 +229,18 @@ class RobotParams:
         return self
 
     def inertial_params(self, robot: Robot) -> InertialParams:
-        """The robot's nominal inertial params with ``com_offset`` added (link frame, m)."""
+        """The robot's nominal inertial params with ``com_offset`` added (link frame, m).
+
+        Args:
+            robot: the model.
+
+        Returns:
+            ``InertialParams``: mass (nb,) kg, com (nb, 3) m and inertia (nb, 3, 3) kg m^2,
+            link frames.
+
+        Raises:
+            InputError: the params do not fit ``robot`` (``check``).
+        """
         self.check(robot)
         p = robot.nominal_params()
         com = np.array(p.com)
@@ -230,7 +272,18 @@ class RobotParams:
 
     @classmethod
     def from_dict(cls, data: Mapping, robot: Robot | None = None) -> RobotParams:
-        """Params from a dict; InputError naming the field for anything malformed."""
+        """Params from a dict; InputError naming the field for anything malformed.
+
+        Args:
+            data: the JSON object (see the module docstring).
+            robot: when given, the params are also checked against it (``check``).
+
+        Returns:
+            The ``RobotParams``.
+
+        Raises:
+            InputError: a missing or malformed field, or params that do not fit ``robot``.
+        """
         if not isinstance(data, Mapping):
             raise InputError(f"params must be a JSON object, got {type(data).__name__}")
         missing = [k for k in _REQUIRED if k not in data]
@@ -252,6 +305,19 @@ class RobotParams:
 
     @classmethod
     def from_json(cls, text: str, robot: Robot | None = None) -> RobotParams:
+        """Params from JSON text (``from_dict``).
+
+        Args:
+            text: the JSON text.
+            robot: when given, the params are also checked against it (``check``).
+
+        Returns:
+            The ``RobotParams``.
+
+        Raises:
+            InputError: invalid JSON, a missing or malformed field, or params that do not fit
+                ``robot``.
+        """
         try:
             data = json.loads(text)
         except json.JSONDecodeError as exc:
@@ -259,7 +325,18 @@ class RobotParams:
         return cls.from_dict(data, robot)
 
     def save(self, path: str | Path, extra: Mapping | None = None) -> Path:
-        """Write the JSON atomically (temp file + rename); ``extra`` keys are added."""
+        """Write the JSON atomically (temp file + rename); ``extra`` keys are added.
+
+        Args:
+            path: the file.
+            extra: further top-level keys to write (numpy values as lists), or None.
+
+        Returns:
+            ``path``, as a ``Path``.
+
+        Raises:
+            FileError: ``path`` cannot be written.
+        """
         data = self.to_dict()
         if extra:
             data.update(_jsonable(dict(extra)))
@@ -267,7 +344,18 @@ class RobotParams:
 
     @classmethod
     def load(cls, path: str | Path, robot: Robot | None = None) -> RobotParams:
-        """Read and validate a params file (also against ``robot`` when given)."""
+        """Read and validate a params file (also against ``robot`` when given).
+
+        Args:
+            path: the JSON file.
+            robot: when given, the params are also checked against it (``check``).
+
+        Returns:
+            The ``RobotParams``.
+
+        Raises:
+            InputError: no such file, not UTF-8 JSON, or invalid params (naming ``path``).
+        """
         path = Path(path)
         if not path.is_file():
             raise InputError(f"params file not found: {path}")
@@ -287,7 +375,17 @@ def current_limits(robot: Robot) -> np.ndarray:
     value for every joint, or per joint: ``Robot.joint_numeric``), else, for a joint it gives
     none, the joint's effort limit (N m) times its nominal current/torque ratio
     (``RobotParams.nominal``: ``jaxcomp_nominal_ratio``, else 1 A/(N m)), else, for a joint with
-    no effort limit either, ``DEFAULT_CURRENT_LIMIT`` (the Gen3 Lite declares 11 A)."""
+    no effort limit either, ``DEFAULT_CURRENT_LIMIT`` (the Gen3 Lite declares 11 A).
+
+    Args:
+        robot: the model.
+
+    Returns:
+        (n,) A.
+
+    Raises:
+        InputError: a declared ``jaxcomp_current_limit`` that is not a positive, finite current.
+    """
     arm = arm_joint_indices(robot)
     effort = robot.effort_limits[arm]
     derived = np.where(
@@ -317,7 +415,14 @@ def _jsonable(value: Any) -> Any:
 
 def json_ready(value: Any) -> Any:
     """Plain JSON data: numpy arrays and scalars as Python lists and numbers, keys as str,
-    non-finite floats (NaN, inf) as None."""
+    non-finite floats (NaN, inf) as None.
+
+    Args:
+        value: nested mappings, lists, tuples, arrays and scalars.
+
+    Returns:
+        The same structure as dicts, lists and plain Python values.
+    """
     if isinstance(value, Mapping):
         return {str(k): json_ready(v) for k, v in value.items()}
     if isinstance(value, list | tuple | np.ndarray):
@@ -330,13 +435,35 @@ def json_ready(value: Any) -> Any:
 
 
 def write_json_atomic(path: str | Path, data: Any) -> Path:
-    """Write ``data`` as JSON to ``path`` via a temp file and ``os.replace`` (never partial)."""
+    """Write ``data`` as JSON to ``path`` via a temp file and ``os.replace`` (never partial).
+
+    Args:
+        path: the file.
+        data: JSON-serialisable data (see ``json_ready``), written indented.
+
+    Returns:
+        ``path``, as a ``Path``.
+
+    Raises:
+        FileError: ``path`` cannot be written.
+    """
     return write_text_atomic(path, json.dumps(data, indent=2) + "\n")
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
     """Write ``text`` to ``path`` via a temp file and ``os.replace`` (``files.atomic_output``:
-    never partial, the user's file mode; ``FileError`` naming ``path`` when it cannot)."""
+    never partial, the user's file mode; ``FileError`` naming ``path`` when it cannot).
+
+    Args:
+        path: the file.
+        text: what to write.
+
+    Returns:
+        ``path``, as a ``Path``.
+
+    Raises:
+        FileError: ``path`` cannot be written.
+    """
     from jaxcomp.files import atomic_output
 
     path = Path(path)

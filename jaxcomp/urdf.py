@@ -33,7 +33,20 @@ def _inertial(mass: float, com: np.ndarray, inertia: np.ndarray) -> str:
 
 
 def to_urdf(tree: KinematicTree, params: InertialParams | None = None, name: str = "robot") -> str:
-    """URDF text of ``tree`` with inertials ``params`` (default: the model's)."""
+    """URDF text of ``tree`` with inertials ``params`` (default: the model's).
+
+    Args:
+        tree: the kinematic tree.
+        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
+            link frames; default the model's.
+        name: the URDF robot's name.
+
+    Returns:
+        The URDF document, one element a line.
+
+    Raises:
+        ModelError: a joint with a nonzero reference or anchor, or a body with several joints.
+    """
     p = tree.nominal if params is None else params
     mass, com, inertia = (np.asarray(x, dtype=float) for x in p)
     if np.any(tree.joint_ref != 0):
