@@ -26,7 +26,14 @@ log = logging.getLogger(__name__)
 
 
 def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
-    """Yaw (rad) of a quaternion (ROS order x, y, z, w)."""
+    """The yaw of an orientation.
+
+    Args:
+        x, y, z, w: a unit quaternion, in ROS order.
+
+    Returns:
+        rad, the rotation about z, in [-pi, pi].
+    """
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
@@ -137,7 +144,13 @@ class DingoBase(Base):
         return twist
 
     def on_odometry(self, t: float, pose, twist) -> None:
-        """Record odometry: pose (x m, y m, yaw rad), twist (vx, vy, wz) in the base frame."""
+        """Record odometry (the ROS subscription's callback, or the user's without ROS).
+
+        Args:
+            t: s, the message's stamp.
+            pose: (3,) x m, y m, yaw rad in the odometry frame.
+            twist: (3,) vx m/s, vy m/s, wz rad/s in the base frame.
+        """
         self._odom = BaseState(float(t), np.asarray(pose, float), np.asarray(twist, float))
 
     def odometry(self) -> BaseState:

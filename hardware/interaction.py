@@ -13,7 +13,17 @@ from jaxcomp.errors import InputError
 
 
 def vec3(value, name: str) -> np.ndarray:
-    """A finite (3,) float array or InputError."""
+    """A checked 3-vector.
+
+    Args:
+        value: the vector. name: what it is, for the error message.
+
+    Returns:
+        The finite (3,) float array.
+
+    Raises:
+        InputError: not a finite vector of shape (3,).
+    """
     arr = np.asarray(value, dtype=float)
     if arr.shape != (3,) or not np.isfinite(arr).all():
         raise InputError(f"{name} must be a finite vector of shape (3,), got {value!r}")
@@ -22,7 +32,12 @@ def vec3(value, name: str) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Push:
-    """A constant wrench on the end effector from ``start`` for ``duration`` s."""
+    """A constant wrench on the end effector from ``start`` for ``duration`` s.
+
+    Attributes:
+        start: s, simulation time. duration: s.
+        force: (3,) N. torque: (3,) N m about the end-effector point.
+    """
 
     start: float
     duration: float
@@ -30,6 +45,14 @@ class Push:
     torque: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def active(self, t: float) -> bool:
+        """Whether the push acts at a time.
+
+        Args:
+            t: s, simulation time.
+
+        Returns:
+            start <= t < start + duration.
+        """
         return self.start <= t < self.start + self.duration
 
 
@@ -39,6 +62,12 @@ class Rope:
 
     Slack within ``free_length`` m of the anchor; beyond it pulls the end effector back with
     ``stiffness`` N/m times the stretch.
+
+    Attributes:
+        anchor: (3,) m. free_length: m (>= 0). stiffness: N/m (>= 0).
+
+    Raises:
+        InputError: a negative or non-finite free_length or stiffness.
     """
 
     anchor: np.ndarray
@@ -52,7 +81,14 @@ class Rope:
             raise InputError(f"rope stiffness must be >= 0 N/m, got {self.stiffness}")
 
     def force(self, point: np.ndarray) -> np.ndarray:
-        """(3,) N on the end effector at ``point``: zero while slack."""
+        """The rope's pull on the end effector: zero while slack.
+
+        Args:
+            point: (3,) m, the end effector's position.
+
+        Returns:
+            (3,) N.
+        """
         d = point - self.anchor
         dist = float(np.linalg.norm(d))
         if dist <= self.free_length or dist == 0.0:
@@ -82,11 +118,31 @@ class Interaction:
         )
 
     def set_wrench(self, force=(0.0, 0.0, 0.0), torque=(0.0, 0.0, 0.0)) -> None:
+        """Set the constant wrench (zero: none).
+
+        Args:
+            force: (3,) N. torque: (3,) N m about the end-effector point.
+
+        Raises:
+            InputError: not a finite (3,) vector.
+        """
         self.force = vec3(force, "force")
         self.torque = vec3(torque, "torque")
         self._update()
 
     def add_push(self, start: float, duration: float, force, torque=(0.0, 0.0, 0.0)) -> Push:
+        """Add a push (see ``Push``).
+
+        Args:
+            start: s, simulation time. duration: s (> 0).
+            force: (3,) N. torque: (3,) N m about the end-effector point.
+
+        Returns:
+            The ``Push``.
+
+        Raises:
+            InputError: a non-finite start, a duration <= 0 or not finite, a bad vector.
+        """
         if not (np.isfinite(start) and np.isfinite(duration) and duration > 0):
             raise InputError(
                 f"push needs a finite start and duration > 0 s, got {start}, {duration}"
@@ -97,6 +153,17 @@ class Interaction:
         return push
 
     def attach_rope(self, anchor, free_length: float, stiffness: float) -> Rope:
+        """Attach a rope (see ``Rope``), replacing any.
+
+        Args:
+            anchor: (3,) m. free_length: m (>= 0). stiffness: N/m (>= 0).
+
+        Returns:
+            The ``Rope``.
+
+        Raises:
+            InputError: a bad anchor, free_length or stiffness.
+        """
         self.rope = Rope(vec3(anchor, "anchor"), float(free_length), float(stiffness))
         self._update()
         return self.rope
@@ -113,7 +180,14 @@ class Interaction:
         self.detach_rope()
 
     def wrench(self, t: float, point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Total force (3,) N and torque (3,) N m on the end effector at time t."""
+        """The total wrench on the end effector; records the rope's part in ``rope_force``.
+
+        Args:
+            t: s, simulation time. point: (3,) m, the end effector's position (for the rope).
+
+        Returns:
+            (force (3,) N, torque (3,) N m about ``point``).
+        """
         force, torque = self.force.copy(), self.torque.copy()
         for p in self.pushes:
             if p.active(t):

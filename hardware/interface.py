@@ -24,6 +24,7 @@ import numpy as np
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError, JaxcompError
 from jaxcomp.hardware.mecanum import TwistLimits
+from jaxcomp.hardware.move_profile import move_path
 from jaxcomp.reduction import BASE_JOINTS
 from jaxcomp.robot_params import current_limits
 
@@ -127,7 +128,20 @@ class ArmLimits:
         switch_speed: float = math.radians(10.0),
     ) -> ArmLimits:
         """Limits from a ``jaxcomp.Robot``: joint ranges, current limits (``current_limits``),
-        effort limits; ``joints`` selects the arm's joints (default: all)."""
+        effort limits.
+
+        Args:
+            robot: the ``jaxcomp.Robot``.
+            joints: the arm's n joints, indices into ``robot.joint_names`` (default: all).
+            margin: rad off both ends of each joint range for position targets.
+            velocity: rad/s, every joint's speed limit. switch_speed: rad/s (see above).
+
+        Returns:
+            The ``ArmLimits`` of the selected joints, in ``joints`` order.
+
+        Raises:
+            InputError: ``joints`` include a mobile-base joint.
+        """
         idx = np.arange(robot.nv) if joints is None else np.asarray(joints, int)
         hard = robot.joint_limits[idx]
         n = len(idx)
@@ -166,60 +180,6 @@ def _check_range(arr, lo, hi, name: str, unit: str, joints: Sequence[str], use) 
             f"[{np.broadcast_to(lo, arr.shape)[j]:.4g}, {np.broadcast_to(hi, arr.shape)[j]:.4g}] "
             f"{unit}; nothing was sent"
         )
-
-
-def trapezoid(distance: float, speed: float, accel: float, t):
-    """Distance travelled at time(s) t s along a trapezoidal (or triangular) speed profile."""
-    t = np.asarray(t, dtype=float)
-    if distance <= 0:
-        return np.zeros_like(t)
-    t_acc = speed / accel
-    if accel * t_acc**2 > distance:  # triangular: never reaches ``speed``
-        t_acc = math.sqrt(distance / accel)
-        speed = accel * t_acc
-    t_total = 2 * t_acc + (distance - accel * t_acc**2) / speed
-    tc = np.clip(t, 0.0, t_total)
-    r = t_total - tc
-    return np.where(
-        tc < t_acc,
-        0.5 * accel * tc**2,
-        np.where(
-            r < t_acc,
-            distance - 0.5 * accel * r**2,
-            0.5 * accel * t_acc**2 + speed * (tc - t_acc),
-        ),
-    )
-
-
-def trapezoid_duration(distance: float, speed: float, accel: float) -> float:
-    """Duration, s, of ``trapezoid`` over ``distance``."""
-    if distance <= 0:
-        return 0.0
-    t_acc = speed / accel
-    if accel * t_acc**2 > distance:
-        return 2 * math.sqrt(distance / accel)
-    return 2 * t_acc + (distance - accel * t_acc**2) / speed
-
-
-def move_path(
-    start: np.ndarray,
-    target: np.ndarray,
-    speed: float,
-    accel: float,
-    settle: float = 0.0,
-    dt: float = CONTROL_PERIOD,
-) -> np.ndarray:
-    """The position targets (T, n) rad of one ``Arm.move_to`` from ``start`` to ``target``
-    (n,) rad, row i the target at (i + 1) ``dt`` s: the joint with the longest way follows
-    ``trapezoid`` (``speed`` rad/s, ramps of ``accel`` rad/s^2), the others are scaled to
-    arrive together; then ``settle`` s at the target."""
-    delta = target - start
-    dist = float(np.abs(delta).max())
-    steps = math.ceil(trapezoid_duration(dist, speed, accel) / dt - 1e-9)
-    steps += int(round(settle / dt))
-    times = np.arange(1, steps + 1) * dt
-    frac = trapezoid(dist, speed, accel, times) / dist if dist > 0 else np.ones(steps)
-    return start + frac[:, None] * delta
 
 
 class Arm(abc.ABC):
@@ -328,7 +288,17 @@ class Arm(abc.ABC):
 
     # ----------------------------------------------------------------- commands
     def check_command(self, command: ArmCommand) -> ArmCommand:
-        """Validate a command against shape, NaN and limits; InputError if it may not be sent."""
+        """Validate a command against shape, NaN and limits.
+
+        Args:
+            command: each field (n,) or None; limits apply to the joints in the field's mode.
+
+        Returns:
+            The command, each given field a float array (n,).
+
+        Raises:
+            InputError: a wrong shape, NaN or inf, or a target beyond the limits.
+        """
         pos, vel, cur = command
         return ArmCommand(
             None if pos is None else self._check_field(pos, ControlMode.POSITION),
@@ -353,9 +323,17 @@ class Arm(abc.ABC):
     def cycle(self, command: ArmCommand | None = None) -> ArmState:
         """Send this cycle's command (validated first) and return the next state (1 kHz).
 
-        Raises InputError for a bad command (nothing is sent) and HardwareFault when the
-        robot reports a new fault (every joint is then in position mode, holding). Faults stay
-        latched in the states (and the arm in position mode) until ``clear_faults()``.
+        Args:
+            command: this cycle's targets; None keeps every target.
+
+        Returns:
+            The next measured ``ArmState``; faults stay latched in the states (the arm in
+            position mode) until ``clear_faults()``.
+
+        Raises:
+            InputError: a bad command (nothing is sent).
+            HardwareFault: a new fault (every joint is then in position mode, holding), or the
+                arm is closed.
         """
         if self._closed:
             self._check_open()
@@ -420,8 +398,15 @@ class Arm(abc.ABC):
 
         A joint switched to POSITION holds its measured position, to VELOCITY starts at 0
         rad/s, to CURRENT starts at its measured current (the latest measurement: a backend
-        may measure while it switches). Switching a joint that moves faster than
-        ``limits.switch_speed`` to CURRENT is refused (InputError, nothing switched).
+        may measure while it switches).
+
+        Args:
+            modes: one ``ControlMode`` for all joints, or n entries (a ``ControlMode`` or None).
+
+        Raises:
+            InputError: not n entries, an unknown mode, leaving POSITION in fault, or CURRENT
+                for a joint faster than ``limits.switch_speed`` (nothing is switched).
+            HardwareFault: the arm is closed or not started.
         """
         self._check_open()
         if isinstance(modes, ControlMode):
@@ -459,7 +444,11 @@ class Arm(abc.ABC):
         self._update_use()
 
     def set_mode(self, joint: int | str, mode: ControlMode) -> None:
-        """Switch one joint (index or name); see ``set_modes``."""
+        """Switch one joint; see ``set_modes`` (InputError also for an unknown joint).
+
+        Args:
+            joint: index into ``joint_names``, or the name. mode: its new ``ControlMode``.
+        """
         modes: list[ControlMode | None] = [None] * self.n
         modes[self._joint(joint)] = mode
         self.set_modes(modes)
@@ -474,7 +463,17 @@ class Arm(abc.ABC):
 
     # ----------------------------------------------------------------- motions
     def pose(self, pose: str | Sequence[float]) -> np.ndarray:
-        """Joint positions (n,) rad of a named pose or an array, checked against the limits."""
+        """Joint positions of a named pose or an array, checked against the limits.
+
+        Args:
+            pose: a name in ``poses``, or (n,) rad.
+
+        Returns:
+            (n,) rad.
+
+        Raises:
+            InputError: an unknown name, a wrong shape, NaN or inf, or beyond ``limits.position``.
+        """
         if isinstance(pose, str):
             if pose not in self.poses:
                 raise InputError(f"unknown pose {pose!r}; known: {', '.join(self.poses)}")
@@ -496,10 +495,20 @@ class Arm(abc.ABC):
     ) -> ArmState:
         """Move every joint to ``pose`` with the robot's own position servo; block until there.
 
-        The joint with the longest way moves at ``speed`` rad/s (trapezoidal profile, ramps
-        of ``accel`` rad/s^2, default speed / 0.1 s); the others are scaled to arrive together,
-        so each moves at constant speed between the ramps. ``on_state`` is called with every
-        1 kHz state (recording); ``settle`` s are held at the target at the end.
+        The joint with the longest way follows a trapezoidal profile (``move_path``): the others
+        are scaled to arrive together, so each moves at constant speed between the ramps.
+
+        Args:
+            pose: a name in ``poses``, or (n,) rad.
+            speed: rad/s of the longest way, in (0, the smallest ``limits.velocity``].
+            on_state: called with every 1 kHz state (recording).
+            accel: rad/s^2 of the ramps (default speed / 0.1 s). settle: s held at the end.
+
+        Returns:
+            The last ``ArmState``.
+
+        Raises:
+            InputError: a bad pose, speed or accel (nothing moves). HardwareFault: as ``cycle``.
         """
         target = self.pose(pose)
         speed = float(speed)
@@ -520,7 +529,14 @@ class Arm(abc.ABC):
         return state
 
     def hold(self, seconds: float, on_state: Callable[[ArmState], None] | None = None) -> ArmState:
-        """Keep the current targets for ``seconds`` s of cycles."""
+        """Keep the current targets for ``seconds`` s (rounded to whole cycles).
+
+        Args:
+            seconds: s. on_state: called with every state.
+
+        Returns:
+            The last ``ArmState`` (the latest measured one for no cycle).
+        """
         state = self.read()
         for _ in range(int(round(seconds / self.dt))):
             state = self.cycle()
@@ -578,10 +594,15 @@ class Base(abc.ABC):
         """Release the backend (the base was told to stop)."""
 
     def send_twist(self, twist: Sequence[float]) -> None:
-        """Command a body twist (vx m/s, vy m/s, wz rad/s); InputError for a bad or too fast one.
+        """Command a body twist; the base keeps following it (within the acceleration limits)
+        until a new command, or stops when none came for ``limits.timeout`` s.
 
-        The base keeps following it (within the acceleration limits) until a new command, or
-        stops when none came for ``limits.timeout`` s.
+        Args:
+            twist: (3,) body twist (vx m/s, vy m/s, wz rad/s) in the base frame.
+
+        Raises:
+            InputError: a wrong shape, NaN or inf, or beyond ``limits.velocity``.
+            HardwareFault: the base is closed.
         """
         if self._closed:
             raise HardwareFault("the base is closed")

@@ -75,7 +75,7 @@ _MODE_NAME = {
 
 
 def _wrap_rad(deg: np.ndarray) -> np.ndarray:
-    """Kortex degrees (any range, usually [0, 360)) to rad in (-pi, pi]."""
+    """Kortex degrees (any range, usually [0, 360)) to rad in [-pi, pi)."""
     return np.deg2rad((np.asarray(deg) + 180.0) % 360.0 - 180.0)
 
 

@@ -31,7 +31,11 @@ def _numeric(robot: Robot | None, name: str, default) -> np.ndarray:
 
 @dataclass(frozen=True)
 class MecanumGeometry:
-    """Wheel radius (m) and the half wheelbase lx and half track ly (m)."""
+    """The drive's geometry.
+
+    Attributes:
+        wheel_radius: m. lx: m, half the wheelbase. ly: m, half the track.
+    """
 
     wheel_radius: float = WHEEL_RADIUS
     lx: float = LX_LY[0]
@@ -39,7 +43,14 @@ class MecanumGeometry:
 
     @classmethod
     def from_robot(cls, robot: Robot | None) -> MecanumGeometry:
-        """From the model's ``jaxcomp_wheel_radius`` / ``jaxcomp_wheel_lx_ly``, else defaults."""
+        """From the model's ``jaxcomp_wheel_radius`` / ``jaxcomp_wheel_lx_ly``, else defaults.
+
+        Args:
+            robot: the model, or None for the defaults.
+
+        Returns:
+            The ``MecanumGeometry``.
+        """
         lx, ly = _numeric(robot, "jaxcomp_wheel_lx_ly", LX_LY)
         return cls(float(_numeric(robot, "jaxcomp_wheel_radius", [WHEEL_RADIUS])[0]), lx, ly)
 
@@ -49,17 +60,37 @@ class MecanumGeometry:
         return np.array([[1, -1, -k], [1, 1, k], [1, 1, -k], [1, -1, k]]) / self.wheel_radius
 
     def wheel_speeds(self, twist) -> np.ndarray:
-        """(4,) wheel speeds rad/s (FL, FR, RL, RR) for a body twist (vx, vy, wz)."""
+        """The wheel speeds that drive a body twist.
+
+        Args:
+            twist: (3,) body twist (vx m/s, vy m/s, wz rad/s) in the base frame.
+
+        Returns:
+            (4,) wheel speeds, rad/s (FL, FR, RL, RR).
+        """
         return self._matrix @ np.asarray(twist, dtype=float)
 
     def twist(self, wheel_speeds) -> np.ndarray:
-        """(3,) body twist (vx, vy, wz) from (4,) wheel speeds rad/s (least squares)."""
+        """The body twist of the wheel speeds (least squares).
+
+        Args:
+            wheel_speeds: (4,) rad/s (FL, FR, RL, RR).
+
+        Returns:
+            (3,) body twist (vx m/s, vy m/s, wz rad/s) in the base frame.
+        """
         return np.linalg.pinv(self._matrix) @ np.asarray(wheel_speeds, dtype=float)
 
 
 @dataclass(frozen=True)
 class TwistLimits:
-    """Per-axis velocity (m/s, m/s, rad/s) and acceleration limits, and the command timeout s."""
+    """The base's twist limits.
+
+    Attributes:
+        velocity: per-axis speed limits (vx m/s, vy m/s, wz rad/s).
+        accel: per-axis acceleration limits (m/s^2, m/s^2, rad/s^2).
+        timeout: s without a command before the base stops.
+    """
 
     velocity: tuple[float, float, float] = TWIST_LIMITS
     accel: tuple[float, float, float] = TWIST_ACCEL_LIMITS
@@ -67,7 +98,15 @@ class TwistLimits:
 
     @classmethod
     def from_robot(cls, robot: Robot | None) -> TwistLimits:
-        """From the model's ``jaxcomp_twist_limits`` etc., else Clearpath's figures."""
+        """From the model's ``jaxcomp_twist_limits``, ``jaxcomp_twist_accel_limits`` and
+        ``jaxcomp_cmd_timeout``, else Clearpath's figures.
+
+        Args:
+            robot: the model, or None for Clearpath's figures.
+
+        Returns:
+            The ``TwistLimits``.
+        """
         return cls(
             tuple(_numeric(robot, "jaxcomp_twist_limits", TWIST_LIMITS).tolist()),
             tuple(_numeric(robot, "jaxcomp_twist_accel_limits", TWIST_ACCEL_LIMITS).tolist()),
@@ -75,7 +114,17 @@ class TwistLimits:
         )
 
     def check(self, twist) -> np.ndarray:
-        """The twist as a (3,) array, or InputError (shape, NaN, beyond the velocity limits)."""
+        """Check a commanded twist.
+
+        Args:
+            twist: body twist (vx m/s, vy m/s, wz rad/s) in the base frame.
+
+        Returns:
+            The twist as a (3,) float array.
+
+        Raises:
+            InputError: not shape (3,), NaN or inf, or beyond ``velocity``.
+        """
         arr = np.asarray(twist, dtype=float)
         if arr.shape != (3,):
             raise InputError(
@@ -109,7 +158,12 @@ class TwistLimiter:
         self.output = np.zeros(3)
 
     def command(self, twist: np.ndarray, t: float) -> None:
-        """Record a (validated) twist commanded at time t."""
+        """Record a (validated) twist commanded at time t.
+
+        Args:
+            twist: (3,) body twist (vx m/s, vy m/s, wz rad/s) in the base frame.
+            t: s, the command's time.
+        """
         self._cmd = np.array(twist, dtype=float)
         self._cmd_time = t
 
@@ -118,10 +172,25 @@ class TwistLimiter:
         self._cmd = np.zeros(3)
 
     def timed_out(self, t: float) -> bool:
+        """Whether the last command is older than ``limits.timeout``.
+
+        Args:
+            t: s, now.
+
+        Returns:
+            True when no command came in the ``limits.timeout`` s before ``t`` (or none ever).
+        """
         return t - self._cmd_time > self.limits.timeout
 
     def update(self, t: float) -> np.ndarray:
-        """The limited twist (3,) at time t."""
+        """Step the output towards the command (zero once timed out) at the acceleration limits.
+
+        Args:
+            t: s, now; the step covers the time since the last update (none at the first).
+
+        Returns:
+            (3,) the limited twist (vx m/s, vy m/s, wz rad/s) the base may follow at ``t``.
+        """
         target = np.zeros(3) if self.timed_out(t) else self._cmd
         dt = 0.0 if self._t is None else max(t - self._t, 0.0)
         self._t = t

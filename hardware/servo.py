@@ -27,8 +27,15 @@ STIFF_LIMIT = 2.0
 
 
 def gain_poses(limits: np.ndarray) -> np.ndarray:
-    """(GAIN_POSES, n) rad: the zero pose, then poses from ``default_rng(0)`` uniform within
-    ``limits`` (n, 2) rad (infinite ones: -pi .. pi)."""
+    """The poses the gains are sized over.
+
+    Args:
+        limits: (n, 2) rad, the joint ranges; a joint with an infinite bound draws in -pi .. pi.
+
+    Returns:
+        (GAIN_POSES, n) rad: the zero pose, then poses from ``default_rng(0)`` uniform within
+        ``limits``.
+    """
     finite = np.isfinite(limits).all(axis=1)
     lo = np.where(finite, limits[:, 0], -np.pi)
     hi = np.where(finite, limits[:, 1], np.pi)
@@ -40,8 +47,17 @@ def gain_poses(limits: np.ndarray) -> np.ndarray:
 def pd_gains(
     i_min: np.ndarray, i_max: np.ndarray, load: np.ndarray, bandwidth: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(kp, kv) (..., n) of joints with effective inertia range ``i_min`` .. ``i_max``
-    kg m^2 and largest gravity load ``load`` N m (see the module docstring)."""
+    """The position servo's PD gains (see the module docstring).
+
+    Args:
+        i_min: (..., n) kg m^2, each joint's smallest effective inertia.
+        i_max: (..., n) kg m^2, its largest.
+        load: (..., n) N m, its largest gravity load (sign ignored).
+        bandwidth: rad/s, w.
+
+    Returns:
+        (kp N m/rad, kv N m s/rad), (..., n) each.
+    """
     i_min, i_max = np.asarray(i_min, float), np.asarray(i_max, float)
     base = i_min * bandwidth**2
     hold = np.minimum(np.abs(load) / HOLD_SAG, i_min * (STIFF_LIMIT * bandwidth) ** 2)

@@ -41,6 +41,13 @@ class SimBase(Base):
         return self.geometry.wheel_speeds(self.odometry().twist)
 
     def advance(self, seconds: float) -> BaseState:
-        """Lock step: simulate ``seconds`` s (for a base without an arm being cycled)."""
+        """Lock step: simulate ``seconds`` s (for a base without an arm being cycled).
+
+        Args:
+            seconds: s, rounded to whole physics steps.
+
+        Returns:
+            The odometry after them.
+        """
         self.sim.step(int(round(seconds / self.sim.model.opt.timestep)))
         return self.odometry()

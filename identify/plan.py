@@ -36,7 +36,7 @@ import numpy as np
 
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
-from jaxcomp.hardware.interface import trapezoid_duration
+from jaxcomp.hardware.move_profile import trapezoid_duration
 from jaxcomp.robot import Robot, load_robot
 from jaxcomp.robot_params import arm_joint_indices, write_json_atomic
 

@@ -5,7 +5,7 @@ import pytest
 
 from jaxcomp.errors import InputError
 from jaxcomp.hardware import ArmCommand, ControlMode, Simulator
-from jaxcomp.hardware.interface import trapezoid, trapezoid_duration
+from jaxcomp.hardware.move_profile import trapezoid, trapezoid_duration
 
 
 @pytest.fixture

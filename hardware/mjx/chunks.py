@@ -31,11 +31,19 @@ def chunk_length(
     every: int,
     steps: int,
 ) -> int:
-    """Steps per compiled call of a run recording ``every``-th sample of (q, dq, current) of
-    ``n`` joints for ``worlds`` worlds (of one device) over ``steps`` steps: ``chunk_steps``
-    if given, else 100 on the CPU, else as many as keep a chunk's samples within
-    ``CHUNK_BYTES`` (at most 10 000, at most ``steps``); rounded up to a multiple of
-    ``every``."""
+    """Steps per compiled call of a run that records every ``every``-th sample of
+    (q, dq, current).
+
+    Args:
+        chunk_steps: the steps asked for, or None: 100 on the CPU, else as many as keep a
+            chunk's samples within ``CHUNK_BYTES`` (at most 10 000), at most ``steps``.
+        backend: the JAX backend (``"cpu"``, ``"gpu"``, ...).
+        worlds: the worlds of one device. n: the joints. itemsize: bytes per sample value.
+        every: the recording decimation (>= 1). steps: the run's length, steps.
+
+    Returns:
+        The chunk length, steps, rounded up to a multiple of ``every``.
+    """
     k = chunk_steps
     if k is None:
         if backend == "cpu":
@@ -53,10 +61,20 @@ def scan_decimated(
     xs: PyTree,
     every: int,
 ) -> tuple[PyTree, PyTree | None]:
-    """``lax.scan`` of ``step(carry, i, x_i) -> (carry, out)`` over the leading axis of ``xs``
-    (a multiple of ``every``), keeping the outputs of steps 0, every, 2 every, ... stacked
-    (steps // every, ...); ``every`` = 0 keeps none (returns None). With every > 1 the group's
-    first output rides in the carry, so the step appears once in the compiled graph."""
+    """``lax.scan`` of ``step`` keeping the outputs of steps 0, every, 2 every, ...
+
+    With every > 1 the group's first output rides in the carry, so the step appears once in
+    the compiled graph.
+
+    Args:
+        step: ``step(carry, i, x_i) -> (carry, out)``, i the step's index.
+        carry: the initial carry.
+        xs: the steps' inputs along the leading axis (T, a multiple of ``every``).
+        every: the decimation; 0 keeps no output.
+
+    Returns:
+        (the final carry, the kept outputs stacked (T // every, ...), or None for every = 0).
+    """
     length = jax.tree_util.tree_leaves(xs)[0].shape[0]
     if every == 0:
         carry, _ = jax.lax.scan(
@@ -89,12 +107,21 @@ def scan_decimated(
 
 
 def over_worlds(fn: Callable, backend: str, in_axes: Sequence[int | None]) -> Callable:
-    """``fn`` of one world mapped over the leading world axis of its arguments whose
-    ``in_axes`` entry is 0 (None: shared): ``jax.vmap`` on accelerators; on the CPU a loop over
-    the worlds (``lax.map``), where each world's solver loops stop when that world is done
-    (vmapped, every world runs to the slowest's count and computes both branches of every
-    ``cond``: 1.4x the time per step for two Gen3 Lite worlds on a 2-core CPU, 2.3x for one).
-    Either way world w's numbers depend on no other world."""
+    """``fn`` of one world mapped over the leading world axis of its arguments.
+
+    ``jax.vmap`` on accelerators; on the CPU a loop over the worlds (``lax.map``), where each
+    world's solver loops stop when that world is done (vmapped, every world runs to the
+    slowest's count and computes both branches of every ``cond``: 1.4x the time per step for
+    two Gen3 Lite worlds on a 2-core CPU, 2.3x for one). Either way world w's numbers depend
+    on no other world.
+
+    Args:
+        fn: the function of one world. backend: the JAX backend (``"cpu"`` loops).
+        in_axes: per argument, 0 (mapped over its leading axis) or None (shared).
+
+    Returns:
+        The function of every world, its results stacked along a leading world axis.
+    """
     if backend != "cpu":
         return jax.vmap(fn, in_axes=tuple(in_axes))
 

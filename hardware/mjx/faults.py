@@ -17,5 +17,12 @@ FAULT_NAMES = {
 
 
 def fault_names(code: int) -> list[str]:
-    """The readable names of the bits set in a ``fault_code``."""
+    """What a world's fault code says.
+
+    Args:
+        code: a world's ``ClosedLoopResult.fault_code``.
+
+    Returns:
+        The readable names of the bits set in ``code``, in bit order.
+    """
     return [name for bit, name in FAULT_NAMES.items() if int(code) & bit]

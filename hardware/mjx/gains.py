@@ -26,10 +26,17 @@ GAIN_BATCH = 1024  # worlds per batch of the gain computation
 def servo_sizing(
     tree: KinematicTree, params: InertialParams, gravity: jax.Array, poses: jax.Array
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Each joint's effective inertia range and largest gravity load over ``poses`` (P, n) rad,
-    for every world of ``params`` (W, ...) under its ``gravity`` (W, 3) m/s^2:
-    I_min = min over poses of 1 / (M^-1)_jj, I_max = max of M_jj (kg m^2) and max |g_j| (N m),
-    (W, n) each."""
+    """Each joint's effective inertia range and largest gravity load over ``poses``, per world:
+    I_min = min over poses of 1 / (M^-1)_jj, I_max = max of M_jj, max |g_j|.
+
+    Args:
+        tree: the robot's kinematic tree. params: the worlds' inertial params (W, ...).
+        gravity: (W, 3) m/s^2, each world's, in the base (world) frame.
+        poses: (P, n) rad.
+
+    Returns:
+        (I_min kg m^2, I_max kg m^2, largest gravity load N m), (W, n) each.
+    """
 
     def world(p1, g1):
         mm = jax.vmap(lambda q1: dynamics.mass_matrix(tree, q1, p1))(poses)
@@ -44,9 +51,15 @@ def servo_sizing(
 def servo_loads(
     robot: Robot, params: InertialParams, gravity: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-world (I_min, I_max, largest gravity load) (W, n) over ``servo.gain_poses``
-    (``servo_sizing``, batched and compiled once per robot). ``params``: (W, ...) inertial
-    params; ``gravity`` (W, 3) m/s^2, each world's."""
+    """``servo_sizing`` over ``servo.gain_poses``, batched and compiled once per robot.
+
+    Args:
+        robot: the arm. params: the worlds' inertial params (W, ...).
+        gravity: (3,) or (W, 3) m/s^2, in the base (world) frame.
+
+    Returns:
+        (I_min kg m^2, I_max kg m^2, largest gravity load N m), (W, n) each.
+    """
     poses = gain_poses(robot.joint_limits[arm_joint_indices(robot)])
     tree = robot.tree
     sizing = robot.cached(
@@ -69,6 +82,14 @@ def servo_loads(
 def servo_gains(
     robot: Robot, params: InertialParams, gravity: np.ndarray, bandwidth: float = 500.0
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per-world position-servo gains (kp, kv) (W, n) as ``Simulator._gains`` computes them
-    (``hardware.servo.pd_gains`` of ``servo_loads``); ``bandwidth`` rad/s."""
+    """Per-world position-servo gains as the CPU ``Simulator`` computes its own
+    (``hardware.servo.pd_gains`` of ``servo_loads``).
+
+    Args:
+        robot: the arm. params: the worlds' inertial params (W, ...).
+        gravity: (3,) or (W, 3) m/s^2, in the base (world) frame. bandwidth: rad/s.
+
+    Returns:
+        (kp N m/rad, kv N m s/rad), (W, n) each.
+    """
     return pd_gains(*servo_loads(robot, params, gravity), bandwidth)

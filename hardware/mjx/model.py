@@ -50,7 +50,17 @@ WORLD_MODEL_FIELDS = (
 
 
 def end_effector_site(robot: Robot) -> str:
-    """The end-effector site's name (``Robot.end_effector``), checked to exist."""
+    """The end-effector site's name (``Robot.end_effector``), checked to exist.
+
+    Args:
+        robot: the robot.
+
+    Returns:
+        The site's name.
+
+    Raises:
+        ModelError: the model has no such site.
+    """
     name = robot.end_effector
     if mujoco.mj_name2id(robot.model, mujoco.mjtObj.mjOBJ_SITE, name) < 0:
         raise ModelError(f"the model has no end-effector site {name!r}")
@@ -58,8 +68,17 @@ def end_effector_site(robot: Robot) -> str:
 
 
 def end_effector_point(robot: Robot) -> tuple[str, np.ndarray]:
-    """Name of the end-effector site's body and the site's position (3,) m in that body's
-    frame."""
+    """Where the end-effector site is.
+
+    Args:
+        robot: the robot.
+
+    Returns:
+        (the name of the site's body, the site's position (3,) m in that body's frame).
+
+    Raises:
+        ModelError: the model has no end-effector site.
+    """
     m = robot.model
     s = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, end_effector_site(robot))
     b = int(m.site_bodyid[s])
@@ -67,9 +86,21 @@ def end_effector_point(robot: Robot) -> tuple[str, np.ndarray]:
 
 
 def build_model(robot: Robot, payload: bool = False) -> mujoco.MjModel:
-    """The CPU Simulator's MjModel of ``robot`` (an arm-only model; ``simulation_spec``: 1 ms
-    implicitfast, one actuator per arm joint) with ``LS_ITERATIONS``; with ``payload`` a
-    massless body ``PAYLOAD_BODY`` at the end-effector site (its mass is set per world)."""
+    """The CPU Simulator's MjModel of ``robot`` (``simulation_spec``: 1 ms implicitfast, one
+    actuator per arm joint) with ``LS_ITERATIONS``.
+
+    Args:
+        robot: an arm-only robot loaded from a model file.
+        payload: add a massless body ``PAYLOAD_BODY`` at the end-effector site (its mass is
+            set per world).
+
+    Returns:
+        The compiled ``MjModel``.
+
+    Raises:
+        ModelError: no model file, mobile-base joints, a joint other than hinge or slide,
+            or a model that does not compile.
+    """
     if robot.source is None:
         raise ModelError("the MJX simulator needs a robot loaded from a model file")
     names = robot.joint_names

@@ -3,7 +3,7 @@
 A plan is a list of moves (``Move``: target pose, speed, acceleration, settling time);
 ``reference_trajectory`` turns it into the position targets ``q_ref`` (T, n) rad, one row per
 control period, sample by sample what successive ``Arm.move_to`` calls command
-(``hardware.interface.move_path``). Units: rad, rad/s, rad/s^2, s.
+(``hardware.move_profile.move_path``). Units: rad, rad/s, rad/s^2, s.
 """
 
 from __future__ import annotations
@@ -15,12 +15,16 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxcomp.errors import InputError
-from jaxcomp.hardware.interface import move_path
+from jaxcomp.hardware.move_profile import move_path
 
 
 class Move(NamedTuple):
-    """One ``Arm.move_to``: ``pose`` (n,) rad (None: stay), ``speed`` rad/s of the joint with
-    the longest way, ``accel`` rad/s^2 (None: speed / 0.1 s), ``settle`` s held at the end."""
+    """One ``Arm.move_to``.
+
+    Attributes:
+        pose: (n,) rad (None: stay). speed: rad/s of the joint with the longest way.
+        accel: rad/s^2 (None: speed / 0.1 s). settle: s held at the end.
+    """
 
     pose: Sequence[float] | np.ndarray | None
     speed: float
@@ -35,13 +39,24 @@ def reference_trajectory(
     limits: np.ndarray | None = None,
     max_speed: float | None = None,
 ) -> np.ndarray:
-    """The 1 kHz position targets (T, n) rad that ``Arm.move_to`` sends for ``moves``.
+    """The 1 kHz position targets that ``Arm.move_to`` sends for ``moves``.
 
     Sample by sample what successive ``arm.move_to(pose, speed, accel=, settle=)`` calls
-    command from the target ``start`` (n,) rad (the arm's current target: after a fresh
-    ``Simulator``, its measured settled pose ``arm.read().q``): ``hardware.interface.move_path``
-    (the path ``move_to`` follows), each move starting from the previous move's last target.
-    ``limits`` (n, 2) rad and ``max_speed`` rad/s, if given, are checked as ``move_to`` does.
+    command: ``hardware.move_profile.move_path`` (the path ``move_to`` follows), each move
+    starting from the previous move's last target.
+
+    Args:
+        moves: the ``Move``s (or tuples of their fields).
+        start: (n,) rad, the arm's current target (after a fresh ``Simulator``, its measured
+            settled pose ``arm.read().q``).
+        limits: (n, 2) rad, checked as ``move_to`` does, if given.
+        max_speed: rad/s, checked as ``move_to`` does, if given.
+
+    Returns:
+        (T, n) rad, one row per 1 ms control period.
+
+    Raises:
+        InputError: a bad start or limits, or a move's pose, speed, accel or settle.
     """
     pos = np.asarray(start, dtype=float)
     if pos.ndim != 1 or not np.isfinite(pos).all():

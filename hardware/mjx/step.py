@@ -26,17 +26,29 @@ Step = Callable[[mjx.Model, mjx.Data], tuple[jax.Array, jax.Array, jax.Array, ja
 
 def implicitfast_step(model: mujoco.MjModel, dtype: jnp.dtype) -> Step:
     """One ``mj_step`` of MuJoCo C's implicitfast integrator for hinge/slide joints driven
-    by joint-transmission actuators: (m, d) -> (qpos, qvel, qacc_warmstart, applied, d_forward):
-    applied (nv,) N m the actuators' joint torque over the step, qfrc_actuator with the servo
-    damping at the new velocity (qfrc_actuator + dt (d qfrc_actuator / d qvel) qacc, as the
-    implicit integration applies it), the last the data after ``mjx.forward`` at the step's
-    start (kinematics).
+    by joint-transmission actuators.
 
     ``mjx.step`` keeps a servo's velocity derivative (-kv) in the implicit matrix even when its
     joint torque is clamped at the effort limit (``jnt_actfrcrange``); MuJoCo C (4.0) leaves it
     out, as the clamped torque no longer depends on the velocity. This step does as C does:
     M_hat = M + dt (diag(dof_damping) - sum over unclamped actuators of gear^2 biasprm[2]),
     qacc = M_hat^-1 (qfrc_smooth + qfrc_constraint), qvel += dt qacc, qpos += dt qvel.
+
+    Args:
+        model: the MjModel whose actuators' joints, gears, effort limits and timestep the step
+            fixes (the ``mjx.Model`` it is called with supplies the rest, per world).
+        dtype: the worlds' float dtype.
+
+    Returns:
+        The ``Step`` (m, d) -> (qpos, qvel, qacc_warmstart, applied, d_forward): applied (nv,)
+        N m the actuators' joint torque over the step, qfrc_actuator with the servo damping at
+        the new velocity (qfrc_actuator + dt (d qfrc_actuator / d qvel) qacc, as the implicit
+        integration applies it), d_forward the data after ``mjx.forward`` at the step's start
+        (kinematics).
+
+    Raises:
+        ModelError: an actuator that does not drive a joint, or one with a force range or a
+            gain that is not fixed.
     """
     if not (model.actuator_trntype == mujoco.mjtTrn.mjTRN_JOINT).all():
         raise ModelError("the MJX simulator drives joints only")

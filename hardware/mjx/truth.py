@@ -36,7 +36,7 @@ class BatchTruth:
 
     Attributes:
         ratio: (W, n) A/(N m), current per joint torque.
-        friction: (W, n) A, Coulomb friction loss as current (torque friction / ratio N m).
+        friction: (W, n) A, Coulomb friction loss as current (as torque: friction / ratio, N m).
         com_offset: (W, nb, 3) m, added to each link's COM in the link's own frame; rows in
             ``robot.link_names`` order.
         current_noise: (W,) A, standard deviation of the measured current's noise.
@@ -98,12 +98,23 @@ class BatchTruth:
         gravity: ArrayLike | None = None,
         worlds: int | None = None,
     ) -> BatchTruth:
-        """Broadcast per-joint (n,) or per-world (W, n) figures to a ``BatchTruth``.
+        """Broadcast per-joint (n,) or per-world (W, n) figures to a ``BatchTruth``; scalars
+        broadcast to every world, W is the leading axis of any per-world argument.
 
-        ``com_offset`` (nb, 3) or (W, nb, 3) m (default 0); ``current_noise`` A (default the
-        model's, ``model_current_noise``); ``gravity`` (3,) or (W, 3) m/s^2 (default the
-        model's); scalars broadcast to every world. ``worlds`` sets W when no argument has a
-        world axis.
+        Args:
+            robot: the nominal model.
+            ratio: (n,) or (W, n) A/(N m). friction: (n,) or (W, n) A.
+            com_offset: (nb, 3) or (W, nb, 3) m, link frames (default 0).
+            current_noise: A, or (W,) (default the model's, ``model_current_noise``).
+            viscous: (n,) or (W, n) N m s/rad (default 0). payload: kg, or (W,).
+            gravity: (3,) or (W, 3) m/s^2, base frame (default the model's).
+            worlds: W when no argument has a world axis (default 1).
+
+        Returns:
+            The ``BatchTruth``.
+
+        Raises:
+            InputError: an argument that does not broadcast, or as ``BatchTruth`` refuses.
         """
         if current_noise is None:
             current_noise = model_current_noise(robot)
@@ -145,7 +156,17 @@ class BatchTruth:
     ) -> BatchTruth:
         """One world per seed: world w is ``TrueRobot.draw(robot, seeds[w], com_offset,
         current_noise, viscous)`` (the model's stated truth, else ratios and friction losses
-        drawn around its own figures), plus payload (W,) kg and gravity (3,) or (W, 3) m/s^2."""
+        drawn around its own figures).
+
+        Args:
+            robot: the nominal model. seeds: W seeds.
+            com_offset: m, the COM offsets' bound per axis. current_noise: A (None: the model's).
+            viscous: (n,) N m s/rad, or None. payload: kg, or (W,).
+            gravity: (3,) or (W, 3) m/s^2, base frame (default the model's).
+
+        Returns:
+            The ``BatchTruth`` of W = len(seeds) worlds.
+        """
         truths = [TrueRobot.draw(robot, int(s), com_offset, current_noise, viscous) for s in seeds]
         return cls.from_truths(robot, truths, payload=payload, gravity=gravity)
 
@@ -158,8 +179,18 @@ class BatchTruth:
         payload: ArrayLike = 0.0,
         gravity: ArrayLike | None = None,
     ) -> BatchTruth:
-        """One world per ``TrueRobot`` (as the CPU ``Simulator`` would use it), plus optional
-        payload (W,) kg and gravity (3,) or (W, 3) m/s^2."""
+        """One world per ``TrueRobot`` (as the CPU ``Simulator`` would use it).
+
+        Args:
+            robot: the nominal model. truths: W ``TrueRobot``s of it.
+            payload: kg, or (W,). gravity: (3,) or (W, 3) m/s^2, base frame (default the model's).
+
+        Returns:
+            The ``BatchTruth`` of W = len(truths) worlds.
+
+        Raises:
+            InputError: no truth, a truth that does not fit ``robot``, or as ``from_arrays``.
+        """
         if not truths:
             raise InputError("truths is empty: give one TrueRobot per world")
         links = list(robot.link_names)
@@ -181,7 +212,14 @@ class BatchTruth:
         )
 
     def true_robot(self, robot: Robot, w: int) -> TrueRobot:
-        """World ``w`` as a ``TrueRobot`` for the CPU ``Simulator`` (payload, gravity dropped)."""
+        """World ``w`` as a ``TrueRobot`` for the CPU ``Simulator`` (payload, gravity dropped).
+
+        Args:
+            robot: the nominal model. w: the world's index.
+
+        Returns:
+            The ``TrueRobot``; its viscous friction is None where the world has none.
+        """
         offsets = {
             name: self.com_offset[w, i]
             for i, name in enumerate(robot.link_names)
@@ -200,9 +238,16 @@ class BatchTruth:
 
 
 def true_inertial_params(robot: Robot, truth: BatchTruth) -> InertialParams:
-    """Per-world inertial params (W, nb, ...): nominal + COM offsets, payload folded into the
-    end-effector body (``jaxcomp.params.add_point_mass``: mass, COM and inertia about the
-    COM, link frame)."""
+    """Per-world inertial params: nominal + COM offsets, payload folded into the end-effector
+    body (``jaxcomp.params.add_point_mass``).
+
+    Args:
+        robot: the nominal model. truth: the worlds' truth.
+
+    Returns:
+        ``InertialParams`` with a leading world axis: mass (W, nb) kg, COM (W, nb, 3) m and
+        inertia (W, nb, 3, 3) kg m^2 about the COM, link frames.
+    """
     p = robot.nominal_params()
     w = truth.worlds
     mass = np.broadcast_to(np.asarray(p.mass), (w,) + np.shape(p.mass))
