@@ -34,10 +34,18 @@ def follow_twist(
     limits: TwistLimits,
     out: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Body twist (3,) (vx m/s, vy m/s, wz rad/s) of Eq. (20) plus the yaw term.
+    """Body twist of Eq. (20) plus the yaw term.
 
-    ``ee_pos``, ``desired_pos``: (3,) m, base frame (z is ignored); ``q``: the arm's joint
-    positions (n,) rad. Written into ``out`` (3,) when given (no allocation).
+    Args:
+        ee_pos: The end effector's position p, (3,) m, base frame (z is ignored).
+        desired_pos: p_d, (3,) m, base frame (z is ignored).
+        q: The arm's joint positions, (n,) rad.
+        gains: The follower's gains.
+        limits: The base's twist limits, per axis.
+        out: (3,) array to write into (no allocation), or None.
+
+    Returns:
+        (3,) vx m/s, vy m/s, wz rad/s, base frame (``out`` when given).
     """
     ex = float(ee_pos[0]) - float(desired_pos[0])
     ey = float(ee_pos[1]) - float(desired_pos[1])
@@ -73,5 +81,14 @@ class BaseFollower:
         self._out = np.zeros(3)
 
     def twist(self, ee_pos, desired_pos, q) -> np.ndarray:
-        """(vx m/s, vy m/s, wz rad/s) for the base, base frame."""
+        """The base's twist (``follow_twist``).
+
+        Args:
+            ee_pos: (3,) m, base frame.
+            desired_pos: (3,) m, base frame.
+            q: The arm's joint positions, (n,) rad.
+
+        Returns:
+            (3,) vx m/s, vy m/s, wz rad/s, base frame; the same array every call.
+        """
         return follow_twist(ee_pos, desired_pos, q, self.gains, self.limits, self._out)

@@ -108,8 +108,12 @@ class Cycle:
 
         Args:
             t: s from the start.
-            px, py, yaw: the base's odometry pose (m, m, rad).
-            vx, vy, wz: its twist (m/s, m/s, rad/s), base frame.
+            px: m, the base's odometry x (world frame).
+            py: m, its odometry y.
+            yaw: rad, its odometry yaw.
+            vx: m/s, its twist's x (base frame).
+            vy: m/s, its twist's y.
+            wz: rad/s, its yaw rate.
             compensate: subtract the base's velocity at the target point.
 
         Returns:

@@ -55,15 +55,36 @@ def model_current(
     threshold: float,
     xp: ModuleType = jnp,
 ) -> jax.Array:
-    """(n,) A: c_model = r g(q) + a l sign(dq), a = min(|dq| / t, 1); g(q) N m (n,), dq rad/s,
-    ratio A/(N m), friction l A, threshold t rad/s. Eq. (16) (``current.friction_current``)
-    with no at-rest direction: a joint at rest holds with static friction, whatever its sign."""
+    """c_model = r g(q) + a l sign(dq), a = min(|dq| / t, 1): Eq. (16)
+    (``current.friction_current``) with no at-rest direction: a joint at rest holds with static
+    friction, whatever its sign.
+
+    Args:
+        gravity_torque: g(q), (n,) N m.
+        dq: Joint velocities, (n,) rad/s.
+        ratio: r, (n,) A/(N m).
+        friction: Friction loss l, (n,) A.
+        threshold: t, rad/s, the speed above which a joint counts as moving.
+        xp: ``jax.numpy`` or ``numpy``.
+
+    Returns:
+        The predicted current, (n,) A.
+    """
     no_rest_sign = xp.zeros_like(dq)
     return friction_current(gravity_torque, no_rest_sign, dq, ratio, friction, threshold, 0.0, xp)
 
 
 def external_torque(current: jax.Array, current_model: jax.Array, ratio: jax.Array) -> jax.Array:
-    """(n,) N m on the joints from outside: tau_ext = (c_model - c) / r (currents A)."""
+    """The torque on the joints from outside: tau_ext = (c_model - c) / r.
+
+    Args:
+        current: Measured motor currents c, (n,) A.
+        current_model: c_model from ``model_current``, (n,) A.
+        ratio: r, (n,) A/(N m).
+
+    Returns:
+        tau_ext, (n,) N m.
+    """
     return (current_model - current) / ratio
 
 
@@ -74,19 +95,46 @@ def friction_band(
     threshold: float,
     xp: ModuleType = jnp,
 ) -> jax.Array:
-    """(n,) N m: b = (1 - a) l / r, the static friction a joint (partly) at rest may hold."""
+    """b = (1 - a) l / r, the static friction a joint (partly) at rest may hold.
+
+    Args:
+        dq: Joint velocities, (n,) rad/s.
+        ratio: r, (n,) A/(N m).
+        friction: Friction loss l, (n,) A.
+        threshold: t, rad/s.
+        xp: ``jax.numpy`` or ``numpy``.
+
+    Returns:
+        b, (n,) N m.
+    """
     return (1.0 - blend(dq, threshold, xp)) * friction / ratio
 
 
 def torque_to_force(jac: jax.Array, xp: ModuleType = jnp) -> jax.Array:
-    """(3, n) (J^T)^+ = (J J^T + eps I)^-1 J for the site's position Jacobian J (3, n) m/rad
-    (eps = ``FORCE_MAP_DAMPING``): joint torques N m -> force N in J's frame."""
+    """(J^T)^+ = (J J^T + eps I)^-1 J, eps = ``FORCE_MAP_DAMPING``.
+
+    Args:
+        jac: The site's position Jacobian J, (3, n) m/rad.
+        xp: ``jax.numpy`` or ``numpy``.
+
+    Returns:
+        (3, n), maps joint torques N m to a force N in J's frame.
+    """
     return damped_pinv(jac, FORCE_MAP_DAMPING, xp).T
 
 
 def force_band(force_map: jax.Array, band: jax.Array, xp: ModuleType = jnp) -> jax.Array:
-    """(3,) N: B = |(J^T)^+| b, the per-axis half width of the forces whose joint torques lie
-    within +-b (N m) of the estimate's (``force_map`` from ``torque_to_force``)."""
+    """B = |(J^T)^+| b, the per-axis half width of the forces whose joint torques lie within
+    +-b of the estimate's.
+
+    Args:
+        force_map: (J^T)^+ from ``torque_to_force``, (3, n).
+        band: b from ``friction_band``, (n,) N m.
+        xp: ``jax.numpy`` or ``numpy``.
+
+    Returns:
+        B, (3,) N, in the force map's frame.
+    """
     return xp.abs(force_map) @ band
 
 
@@ -109,8 +157,22 @@ def external_force(
     threshold: float,
     xp: ModuleType = jnp,
 ) -> ExternalForce:
-    """The external force on the end-effector site (see the module doc): position Jacobian
-    ``jac`` (3, n) m/rad, g(q) N m, dq rad/s, measured ``current`` A, all (n,); frame of J."""
+    """The external force on the end-effector site (see the module doc).
+
+    Args:
+        jac: The site's position Jacobian, (3, n) m/rad, in the frame wanted (the controller's:
+            the arm's base frame).
+        gravity_torque: g(q), (n,) N m.
+        dq: Joint velocities, (n,) rad/s.
+        current: Measured motor currents, (n,) A.
+        ratio: (n,) A/(N m).
+        friction: Friction loss, (n,) A.
+        threshold: rad/s, the speed above which a joint counts as moving.
+        xp: ``jax.numpy`` or ``numpy``.
+
+    Returns:
+        The model current (n,) A, the force (3,) N and its band (3,) N, in the frame of ``jac``.
+    """
     c_model = model_current(gravity_torque, dq, ratio, friction, threshold, xp)
     force_map = torque_to_force(jac, xp)
     tau = external_torque(current, c_model, ratio)

@@ -105,12 +105,19 @@ def _check_bool(value, name: str) -> None:
 
 
 class JointGains(NamedTuple):
-    """Per-joint figures resolved against a robot (numpy arrays, (n,))."""
+    """Per-joint figures resolved against a robot.
 
-    posture: np.ndarray  # rad, nullspace posture q_pref
-    stiffness: np.ndarray  # N m/rad (impedance) or 1/s (velocity controller)
-    damping: np.ndarray  # N m s/rad (impedance); zeros for the velocity controller
-    limit: np.ndarray  # A (impedance: current limit) or rad/s (velocity limit)
+    Attributes:
+        posture: Nullspace posture q_pref, (n,) rad.
+        stiffness: (n,) N m/rad (impedance) or 1/s (velocity controller).
+        damping: (n,) N m s/rad (impedance); zeros for the velocity controller.
+        limit: (n,) A (impedance: current limit) or rad/s (velocity limit).
+    """
+
+    posture: np.ndarray
+    stiffness: np.ndarray
+    damping: np.ndarray
+    limit: np.ndarray
 
 
 def _posture(posture, robot: Robot) -> np.ndarray:
@@ -120,7 +127,14 @@ def _posture(posture, robot: Robot) -> np.ndarray:
 
 
 def check_fixed_base(robot: Robot) -> None:
-    """InputError unless ``robot`` is an arm alone (the controllers' model: no base joints)."""
+    """Refuse a model with base joints (the controllers work in the arm-alone model).
+
+    Args:
+        robot: The model.
+
+    Raises:
+        InputError: ``robot`` has base joints.
+    """
     from jaxcomp.robot_params import BASE_JOINTS
 
     base = [n for n in robot.joint_names if n in BASE_JOINTS]
@@ -231,7 +245,18 @@ class ImpedanceGains:
     @classmethod
     def preset(cls, name: str, **changes) -> ImpedanceGains:
         """A named preset (``IMPEDANCE_PRESETS``: "paper", "tracking") with ``changes``: the
-        Gen3 Lite's figures (``control.presets.impedance_gains`` gives them for any arm)."""
+        Gen3 Lite's figures (``control.presets.impedance_gains`` gives them for any arm).
+
+        Args:
+            name: The preset.
+            **changes: Fields to override.
+
+        Returns:
+            The gains.
+
+        Raises:
+            InputError: an unknown preset or a bad field value.
+        """
         if name not in IMPEDANCE_PRESETS:
             raise InputError(
                 f"unknown gains preset {name!r}; presets: {', '.join(IMPEDANCE_PRESETS)}"
@@ -271,7 +296,17 @@ class ImpedanceGains:
         return np.asarray(self.current_rate_limit) * self.period
 
     def joint_arrays(self, robot: Robot) -> JointGains:
-        """Posture (rad), K_n (N m/rad), D_n (N m s/rad), current limit (A), each (n,)."""
+        """The per-joint figures expanded against ``robot``.
+
+        Args:
+            robot: The arm-alone model (n joints).
+
+        Returns:
+            Posture rad, K_n N m/rad, D_n N m s/rad, current limit A, each (n,).
+
+        Raises:
+            InputError: base joints on ``robot``, or a per-joint figure not of n values.
+        """
         check_fixed_base(robot)
         n = robot.nv
         if self.current_limit is None:
@@ -332,7 +367,17 @@ class VelocityGains:
         set_(self, "joint_velocity_limit", lim)
 
     def joint_arrays(self, robot: Robot) -> JointGains:
-        """Posture (rad), k_n (1/s), zeros, joint velocity limit (rad/s), each (n,)."""
+        """The per-joint figures expanded against ``robot``.
+
+        Args:
+            robot: The arm-alone model (n joints).
+
+        Returns:
+            Posture rad, k_n 1/s, zeros, joint velocity limit rad/s, each (n,).
+
+        Raises:
+            InputError: base joints on ``robot``, or a per-joint figure not of n values.
+        """
         check_fixed_base(robot)
         n = robot.nv
         return JointGains(

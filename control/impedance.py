@@ -288,7 +288,8 @@ def impedance_packed_fn(step_fn, n: int, orientation: bool):
 
     Args:
         step_fn: an ``impedance_step_fn`` step.
-        n: joints. orientation: with an orientation task.
+        n: joints.
+        orientation: with an orientation task.
 
     Returns:
         ``packed(x) -> y``: x the packed input (``impedance_io.packed_size``), y current (n) A
@@ -362,11 +363,15 @@ class ImpedanceController(ImpedanceLaw):
         """Validated device arrays for ``step``.
 
         Args:
-            q: (n,) rad. dq: (n,) rad/s. target_pos: (3,) m. target_vel: (3,) m/s (None:
-                zeros). target_acc: (3,) m/s^2 (None: zeros). prev_current: (n,) A (None:
-                zeros). target_rot: (3, 3), orientation gains only. current: (n,) A, the
-                measured currents (None: prev_current). live: (``LIVE_SIZE``,) live gains
-                (None: the gains'). Arm base frame.
+            q: Joint angles, (n,) rad.
+            dq: Joint velocities, (n,) rad/s.
+            target_pos: (3,) m, arm base frame (as every Cartesian input).
+            target_vel: (3,) m/s (None: zeros).
+            target_acc: (3,) m/s^2 (None: zeros).
+            prev_current: (n,) A, the previous command (None: zeros).
+            target_rot: (3, 3), orientation gains only.
+            current: (n,) A, the measured currents (None: prev_current).
+            live: (``LIVE_SIZE``,) live gains (None: the gains').
 
         Returns:
             The arguments of ``step`` (current and live only when given, after target_rot,
@@ -431,10 +436,15 @@ class ImpedanceController(ImpedanceLaw):
         """The packed input of ``packed_step`` (numpy, no checks).
 
         Args:
-            q: (n,) rad. dq: (n,) rad/s. prev_current: (n,) A. target_pos: (3,) m.
-                target_vel: (3,) m/s. target_acc: (3,) m/s^2. target_rot: (3, 3),
-                orientation gains only. current: (n,) A (None: prev_current). live:
-                (``LIVE_SIZE``,) (None: the gains'). Arm base frame.
+            q: Joint angles, (n,) rad.
+            dq: Joint velocities, (n,) rad/s.
+            prev_current: (n,) A, the previous command.
+            target_pos: (3,) m, arm base frame (as every Cartesian input).
+            target_vel: (3,) m/s.
+            target_acc: (3,) m/s^2.
+            target_rot: (3, 3), orientation gains only.
+            current: (n,) A, the measured currents (None: prev_current).
+            live: (``LIVE_SIZE``,) live gains (None: the gains').
 
         Returns:
             (``packed_size``,) float array.

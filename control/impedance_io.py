@@ -30,7 +30,9 @@ def check_joint_vector(x, n: int, name: str, robot: Robot) -> np.ndarray:
 
     Args:
         x: a joint vector (n,) (rad, rad/s or A: named in ``name``).
-        n: joints. name: the input's name and unit, for the error. robot: its joints' names.
+        n: joints.
+        name: the input's name and unit, for the error.
+        robot: its joints' names.
 
     Returns:
         (n,) float array.
@@ -54,7 +56,9 @@ def check_vector3(x, name: str, unit: str) -> np.ndarray:
     """``x`` as a finite float array.
 
     Args:
-        x: a Cartesian vector (3,), arm base frame. name: the input's name. unit: its unit.
+        x: a Cartesian vector (3,), arm base frame.
+        name: the input's name.
+        unit: its unit.
 
     Returns:
         (3,) float array.
@@ -99,7 +103,8 @@ def packed_size(n: int, orientation: bool = False) -> int:
     current | live [| target_rot row-major].
 
     Args:
-        n: joints. orientation: with an orientation task.
+        n: joints.
+        orientation: with an orientation task.
 
     Returns:
         4 n + 16 (+ 9 with an orientation task).
@@ -153,7 +158,8 @@ def unpack_state(x, n: int, orientation: bool) -> PackedState:
 
     Args:
         x: (``packed_size(n, orientation)``,) the packed input (numpy or JAX).
-        n: joints. orientation: whether it carries a target orientation.
+        n: joints.
+        orientation: whether it carries a target orientation.
 
     Returns:
         The ``PackedState`` (views of ``x``; rot (3, 3) or None).
@@ -265,8 +271,14 @@ def pack_diagnostics(
     """Diagnostics from its parts (JAX or numpy arrays).
 
     Args:
-        ee_pos: (3,) m, arm base frame. error: (3,) m. force: (3,) N. tau: (n,) N m.
-        current_raw: (n,) A. rate_limited, saturated: (n,) bool. clipped: () bool.
+        ee_pos: (3,) m, arm base frame (as every Cartesian part).
+        error: (3,) m, x_d - x after the deadband and clip.
+        force: (3,) N, the Cartesian force F.
+        tau: (n,) N m, the joint torques.
+        current_raw: (n,) A, before the rate limit and the saturation.
+        rate_limited: (n,) bool.
+        saturated: (n,) bool.
+        clipped: () bool.
         estimate: the ``external_force.ExternalForce`` (current_model A, force N, band N).
 
     Returns:

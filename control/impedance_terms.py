@@ -27,7 +27,9 @@ def coriolis_times(
 
     Args:
         tree: the arm's kinematic tree.
-        q: (n,) rad. dq: (n,) rad/s. w: (n,) rad/s, the velocity C multiplies.
+        q: Joint angles, (n,) rad.
+        dq: Joint velocities, (n,) rad/s.
+        w: (n,) rad/s, the velocity C multiplies.
         params: the inertials (kg, m, kg m^2; link frames).
 
     Returns:
@@ -48,7 +50,8 @@ def orientation_error(rot: jax.Array, target_rot: jax.Array, xp: ModuleType = jn
     0.5 sum_i rot[:, i] x target_rot[:, i] = sin(angle) axis for a rotation about one axis.
 
     Args:
-        rot: (3, 3) the site's orientation. target_rot: (3, 3) the target's. Arm base frame.
+        rot: (3, 3) the site's orientation, arm base frame.
+        target_rot: (3, 3) the target's, arm base frame.
         xp: ``jax.numpy`` or ``numpy``.
 
     Returns:

@@ -107,7 +107,9 @@ class LawAdapter:
         """One step for the target already in ``target`` (and ``set_rot``).
 
         Args:
-            q: (n,) rad. dq: (n,) rad/s. current: (n,) A, the measured motor currents.
+            q: Joint angles, (n,) rad.
+            dq: Joint velocities, (n,) rad/s.
+            current: (n,) A, the measured motor currents.
 
         Returns:
             (command (n,) A or rad/s, end-effector position (3,) m, arm frame): read-only

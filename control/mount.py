@@ -114,7 +114,10 @@ class ArmMount:
 
     # ---- poses
     def arm_pose(self, base_pose) -> tuple[np.ndarray, np.ndarray]:
-        """The arm frame in the world with the base at ``base_pose`` (x m, y m, yaw rad).
+        """The arm frame in the world with the base at ``base_pose``.
+
+        Args:
+            base_pose: The base's odometry pose (x m, y m, yaw rad).
 
         Returns:
             (origin (3,) m, rotation (3, 3)), world frame.
@@ -132,29 +135,75 @@ class ArmMount:
 
     # ---- points
     def base_to_world(self, p, base_pose) -> np.ndarray:
-        """A point of the base frame, (3,) m, in the world at ``base_pose``."""
+        """A point of the base frame in the world.
+
+        Args:
+            p: (3,) m, base frame.
+            base_pose: The base's odometry pose (x m, y m, yaw rad).
+
+        Returns:
+            (3,) m, world frame.
+        """
         return self._base_origin(base_pose) + rz(float(base_pose[2])) @ p
 
     def world_to_base(self, p, base_pose) -> np.ndarray:
-        """A world point, (3,) m, in the base frame at ``base_pose``."""
+        """A world point in the base frame.
+
+        Args:
+            p: (3,) m, world frame.
+            base_pose: The base's odometry pose (x m, y m, yaw rad).
+
+        Returns:
+            (3,) m, base frame.
+        """
         return rz(float(base_pose[2])).T @ (p - self._base_origin(base_pose))
 
     def arm_to_base(self, p) -> np.ndarray:
-        """A point of the arm frame, (3,) m, in the base frame."""
+        """A point of the arm frame in the base frame.
+
+        Args:
+            p: (3,) m, arm frame.
+
+        Returns:
+            (3,) m, base frame.
+        """
         if self._identity:
             return self.position + p
         return self.position + self.rotation @ p
 
     def base_to_arm(self, p) -> np.ndarray:
-        """A point of the base frame, (3,) m, in the arm frame."""
+        """A point of the base frame in the arm frame.
+
+        Args:
+            p: (3,) m, base frame.
+
+        Returns:
+            (3,) m, arm frame.
+        """
         return self.rotation.T @ (p - self.position)
 
     def arm_to_world(self, p, base_pose) -> np.ndarray:
-        """A point of the arm frame, (3,) m, in the world at ``base_pose``."""
+        """A point of the arm frame in the world.
+
+        Args:
+            p: (3,) m, arm frame.
+            base_pose: The base's odometry pose (x m, y m, yaw rad).
+
+        Returns:
+            (3,) m, world frame.
+        """
         return self.base_to_world(self.arm_to_base(p), base_pose)
 
     def world_to_arm(self, p, base_pose) -> np.ndarray:
-        """A world point, (3,) m, in the arm frame at ``base_pose``."""
+        """A world point in the arm frame.
+
+        Args:
+            p: (3,) m, world frame.
+            base_pose: The base's odometry pose (x m, y m, yaw rad).
+
+        Returns:
+            (3,) m, arm frame.
+        """
         return self.base_to_arm(self.world_to_base(p, base_pose))
 
 

@@ -81,7 +81,18 @@ class ArmFigures(NamedTuple):
 
 
 def arm_figures(robot: Robot) -> ArmFigures:
-    """The ``ArmFigures`` of a fixed-base arm (kept on the robot, ``Robot.cached``)."""
+    """The ``ArmFigures`` of a fixed-base arm (kept on the robot, ``Robot.cached``).
+
+    Args:
+        robot: The arm-alone model.
+
+    Returns:
+        Its figures at ``robot.pose("home")``, nominal inertials.
+
+    Raises:
+        InputError: ``robot`` has base joints.
+        ModelError: no joint moves the end effector at that pose.
+    """
     check_fixed_base(robot)
     return robot.cached(("control", "arm_figures"), lambda: _figures(robot))
 
@@ -113,7 +124,19 @@ def _figures(robot: Robot) -> ArmFigures:
 
 
 def declared_preset(robot: Robot, preset: str) -> dict[str, float] | None:
-    """The figures ``robot``'s model declares for ``preset`` ({field: value}), or None."""
+    """The figures ``robot``'s model declares for ``preset``.
+
+    Args:
+        robot: The arm's model.
+        preset: A name of ``IMPEDANCE_PRESETS``.
+
+    Returns:
+        {field: value} over ``DECLARED_FIELDS`` (N/m, N s/m, N m/rad, N m s/rad, m), or None
+        when the model declares none.
+
+    Raises:
+        ModelError: the custom numeric does not hold five positive numbers.
+    """
     name = DECLARED_PRESET.format(preset=preset)
     values = robot.custom_numeric(name)
     if values is None:
@@ -127,7 +150,16 @@ def declared_preset(robot: Robot, preset: str) -> dict[str, float] | None:
 
 
 def derived_preset(robot: Robot, preset: str) -> dict[str, float | tuple[float, ...]]:
-    """The figures of ``preset`` scaled to ``robot`` (see the module doc), {field: value}."""
+    """The figures of ``preset`` scaled to ``robot`` (see the module doc).
+
+    Args:
+        robot: The arm-alone model.
+        preset: A name of ``IMPEDANCE_PRESETS``.
+
+    Returns:
+        {field: value} over ``DECLARED_FIELDS``; ``nullspace_damping`` one number when every
+        joint's agrees, else one per joint (the cap is per joint).
+    """
     ref = ImpedanceGains.preset(preset)
     fig = arm_figures(robot)
     s_m = fig.apparent_mass / REFERENCE_APPARENT_MASS
@@ -144,9 +176,15 @@ def derived_preset(robot: Robot, preset: str) -> dict[str, float | tuple[float, 
 
 
 def current_rate_limits(robot: Robot) -> float | tuple[float, ...]:
-    """A/s: ``ImpedanceGains().current_rate_limit`` (2000 A/s, meant for the Gen3 Lite's 11 A,
-    ``DEFAULT_CURRENT_LIMIT``) scaled by each joint's current limit over 11 A; one number when
-    all joints agree."""
+    """``ImpedanceGains().current_rate_limit`` (2000 A/s, meant for the Gen3 Lite's 11 A,
+    ``DEFAULT_CURRENT_LIMIT``) scaled by each joint's current limit over 11 A.
+
+    Args:
+        robot: The arm's model.
+
+    Returns:
+        A/s, one number when all joints agree, else one per joint.
+    """
     rate = ImpedanceGains().current_rate_limit
     return _one_or_each(rate * (current_limits(robot) / DEFAULT_CURRENT_LIMIT))
 
@@ -154,8 +192,21 @@ def current_rate_limits(robot: Robot) -> float | tuple[float, ...]:
 def impedance_gains(robot: Robot, preset: str = "tracking", **changes) -> ImpedanceGains:
     """``ImpedanceGains.preset(preset)`` for ``robot``: the figures its model declares, else
     the Gen3 Lite's scaled to it, with the current rate limit scaled to its current limits
-    (see the module doc); ``changes`` override fields. For the Gen3 Lite this is exactly
-    ``ImpedanceGains.preset(preset, **changes)``."""
+    (see the module doc). For the Gen3 Lite this is exactly
+    ``ImpedanceGains.preset(preset, **changes)``.
+
+    Args:
+        robot: The arm-alone model.
+        preset: A name of ``IMPEDANCE_PRESETS``.
+        **changes: ``ImpedanceGains`` fields to override.
+
+    Returns:
+        The gains.
+
+    Raises:
+        InputError: an unknown preset, base joints on ``robot``, or a bad field value.
+        ModelError: a malformed declared preset, or no joint moving the end effector.
+    """
     if preset not in IMPEDANCE_PRESETS:
         known = ", ".join(IMPEDANCE_PRESETS)
         raise InputError(f"unknown gains preset {preset!r}; presets: {known}")
@@ -180,7 +231,14 @@ def gain_limits(robot: Robot) -> GainLimits:
     """``robot``'s ``GainLimits``: stiffness up to ``STIFFNESS_LIMIT`` times its tracking
     preset's (Gen3 Lite: 1000 N/m); damping up to ``DAMPING_NUMBER`` m / T (m its apparent
     mass, T the 1 ms period: more rings with the loop's one-cycle delay; Gen3 Lite: 30.1
-    N s/m), or the tracking preset's if that is higher."""
+    N s/m), or the tracking preset's if that is higher.
+
+    Args:
+        robot: The arm-alone model.
+
+    Returns:
+        The most stiffness N/m and damping N s/m per axis.
+    """
     tracking = impedance_gains(robot, "tracking")
     damping = DAMPING_NUMBER * arm_figures(robot).apparent_mass / CONTROL_PERIOD
     return GainLimits(
@@ -189,8 +247,20 @@ def gain_limits(robot: Robot) -> GainLimits:
 
 
 def check_live_gains(robot: Robot, stiffness, damping) -> tuple[float, float]:
-    """(stiffness N/m, damping N s/m) as numbers within ``gain_limits(robot)``, one for every
-    axis, or InputError naming the gain, its value and the safe range."""
+    """Live Cartesian gains checked against ``gain_limits(robot)``.
+
+    Args:
+        robot: The arm-alone model.
+        stiffness: N/m, one number for every axis.
+        damping: N s/m, one number for every axis.
+
+    Returns:
+        (stiffness N/m, damping N s/m) as floats.
+
+    Raises:
+        InputError: a gain that is not a number or lies outside its safe range (named in
+            the message).
+    """
     limits = gain_limits(robot)
     checked = []
     for name, value, unit, most in (

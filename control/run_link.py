@@ -62,13 +62,27 @@ class LoopMonitor(Protocol):
     every: int
 
     def started(self, start: MonitorStart) -> None:
-        """The run is set up and about to switch the arm."""
+        """The run is set up and about to switch the arm.
+
+        Args:
+            start: The run's mode, trajectory, row layout, timer and duration.
+        """
 
     def sample(self, k: int, row: np.ndarray) -> None:
-        """Cycle ``k``'s recorded row (a view: copy what is kept)."""
+        """Cycle ``k``'s recorded row.
+
+        Args:
+            k: The cycle.
+            row: The recorded row, laid out as ``MonitorStart.columns`` (a view: copy what
+                is kept).
+        """
 
     def ended(self, result: Any) -> None:
-        """The run ended (its ``ControlResult``); the arm is in POSITION mode."""
+        """The run ended; the arm is in POSITION mode.
+
+        Args:
+            result: The run's ``ControlResult``.
+        """
 
 
 @dataclass

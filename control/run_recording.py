@@ -43,7 +43,10 @@ class BlockWriter(RecordingWriter):
         """Add k samples.
 
         Args:
-            t: (k,) s. q: (k, n) rad. dq: (k, n) rad/s. current: (k, n) A.
+            t: (k,) s.
+            q: (k, n) rad.
+            dq: (k, n) rad/s.
+            current: (k, n) A.
             **extra: the extra fields, (k, ...) each.
         """
         k = len(t)
@@ -109,7 +112,11 @@ class Recorder:
         """One sample.
 
         Args:
-            t: s. q: (n,) rad. dq: (n,) rad/s. current: (n,) A. command: (n,) A or rad/s.
+            t: s.
+            q: (n,) rad.
+            dq: (n,) rad/s.
+            current: (n,) A.
+            command: (n,) A or rad/s.
             frames: 9 floats target (world m) | ee (world m) | base pose (x m, y m, yaw rad)
                 [| wrench (3) world N | band (3) world N].
             current_model: (n,) A, the model's current, when estimating.

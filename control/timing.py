@@ -91,7 +91,17 @@ class CycleTimer:
             setattr(self, name, new)
 
     def record(self, sent_ns: int, recv_ns: int, done_ns: int, deadline_ns: int) -> bool:
-        """Add one cycle; returns whether it missed its deadline (``done_ns > deadline_ns``)."""
+        """Add one cycle.
+
+        Args:
+            sent_ns: When its command was sent, ns (``perf_counter_ns``).
+            recv_ns: When the new state came back, ns.
+            done_ns: When the next command was ready, ns.
+            deadline_ns: The cycle's deadline, ns.
+
+        Returns:
+            Whether it missed its deadline (``done_ns > deadline_ns``).
+        """
         k = self.count
         if k >= self._sent.size:
             self._grow()
@@ -104,7 +114,11 @@ class CycleTimer:
         return False
 
     def finish(self, sim_time: float = 0.0) -> None:
-        """Mark the end of the run; ``sim_time`` s of robot (simulation) time elapsed."""
+        """Mark the end of the run.
+
+        Args:
+            sim_time: s of robot (simulation) time elapsed.
+        """
         self.end_ns = time.perf_counter_ns()
         self.cpu_s = time.thread_time() - self._cpu0
         self.sim_time = float(sim_time)
@@ -115,8 +129,15 @@ class CycleTimer:
         return self._missed
 
     def sends(self, start: int, stop: int) -> np.ndarray:
-        """The send stamps (ns, ``perf_counter_ns``) of cycles ``start`` to ``stop - 1``
-        (clipped to those recorded; a read-only view, for monitors)."""
+        """The send stamps of some cycles (for monitors).
+
+        Args:
+            start: First cycle.
+            stop: One past the last cycle (both clipped to those recorded).
+
+        Returns:
+            ns (``perf_counter_ns``), a read-only view.
+        """
         view = self._sent[max(start, 0) : min(stop, self.count)]
         view.flags.writeable = False
         return view
@@ -152,7 +173,15 @@ class CycleTimer:
         }
 
     def dump(self, path: str | Path, extra: dict | None = None) -> Path:
-        """Write ``summary()`` (plus ``extra`` keys) as JSON, atomically."""
+        """Write ``summary()`` as JSON, atomically.
+
+        Args:
+            path: The file.
+            extra: Keys to add.
+
+        Returns:
+            The path written.
+        """
         data = self.summary()
         if extra:
             data.update(extra)
@@ -161,7 +190,12 @@ class CycleTimer:
 
 def wait_until(deadline_ns: int, spin_ns: int = 200_000) -> None:
     """Block until ``time.perf_counter_ns() >= deadline_ns``: sleep until ``spin_ns`` before
-    it, then spin (sleep alone overshoots by 50-100 us on a stock kernel)."""
+    it, then spin (sleep alone overshoots by 50-100 us on a stock kernel).
+
+    Args:
+        deadline_ns: ns, ``perf_counter_ns`` clock.
+        spin_ns: ns of spinning before it.
+    """
     now = time.perf_counter_ns()
     rest = deadline_ns - now - spin_ns
     if rest > 0:
@@ -176,7 +210,14 @@ def realtime_priority(priority: int | None = 50):
     the OS allows it (Linux, root or CAP_SYS_NICE), restoring the old policy after; yields
     whether it was granted. ``None``: leave the scheduling alone (yields False). A 1 kHz loop
     on a shared machine misses deadlines when other processes preempt it for a time slice
-    (several ms); the kernel's real-time throttling still leaves other tasks 5 % of the CPU."""
+    (several ms); the kernel's real-time throttling still leaves other tasks 5 % of the CPU.
+
+    Args:
+        priority: 1-99, or None.
+
+    Yields:
+        Whether real-time priority was granted.
+    """
     if priority is None or not hasattr(os, "sched_setscheduler"):
         yield False
         return

@@ -116,17 +116,41 @@ class Segment(ABC):
 
     @abstractmethod
     def at(self, s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(p m, dp/ds, d2p/ds2 1/m), each (3,)."""
+        """The path's point and its derivatives at arc length ``s``.
+
+        Args:
+            s: Arc length, m.
+
+        Returns:
+            (p m, dp/ds, d2p/ds2 1/m), each (3,).
+        """
 
     def sample(self, s: float, sd: float, sdd: float) -> TargetSample:
-        """Position, velocity and acceleration at arc length s moving at s' = sd m/s,
-        s'' = sdd m/s^2: p(s), p' sd, p'' sd^2 + p' sdd."""
+        """Position, velocity and acceleration moving along the path: p(s), p' sd,
+        p'' sd^2 + p' sdd.
+
+        Args:
+            s: Arc length, m.
+            sd: s', m/s.
+            sdd: s'', m/s^2.
+
+        Returns:
+            The target, each field (3,).
+        """
         p, dp, ddp = self.at(s)
         return TargetSample(p, dp * sd, ddp * (sd * sd) + dp * sdd)
 
     def farthest(self, point: np.ndarray, s_end: float) -> np.ndarray:
-        """(3,) m, the point of the path over arc lengths [0, s_end] m farthest from
-        ``point`` (here: of 1001 samples; exact in ``Line`` and ``Arc``)."""
+        """The point of the path farthest from ``point`` (here: of 1001 samples; exact in
+        ``Line`` and ``Arc``).
+
+        Args:
+            point: (3,) m.
+            s_end: m, the path is searched over arc lengths [0, s_end].
+
+        Returns:
+            (3,) m.
+        """
         points = [self.at(s)[0] for s in np.linspace(0.0, s_end, 1001)]
         return _farthest(points, point)
 
@@ -158,13 +182,40 @@ class Line(Segment):
         return d / n if n > _EPS else np.zeros(3)
 
     def at(self, s: float):
+        """``Segment.at``, s capped at the line's length.
+
+        Args:
+            s: Arc length, m.
+
+        Returns:
+            (p m, unit direction, zeros), each (3,).
+        """
         return self.start + self._unit() * min(s, self.length), self._unit(), np.zeros(3)
 
     def farthest(self, point: np.ndarray, s_end: float) -> np.ndarray:
+        """``Segment.farthest``, exact: one of the two ends.
+
+        Args:
+            point: (3,) m.
+            s_end: m, the far end's arc length.
+
+        Returns:
+            (3,) m.
+        """
         # the distance from a point is convex along a line: one of the two ends
         return _farthest([self.start, self.at(s_end)[0]], point)
 
     def sample(self, s: float, sd: float, sdd: float) -> TargetSample:
+        """``Segment.sample``: along the line's direction, s capped at its length.
+
+        Args:
+            s: Distance from ``start``, m.
+            sd: Speed along the line, m/s.
+            sdd: Acceleration along it, m/s^2.
+
+        Returns:
+            Position, velocity, acceleration.
+        """
         # scalar maths on cached floats: a few us per call at 1 kHz
         fast = self.__dict__.get("_fast")
         if fast is None:
@@ -197,6 +248,14 @@ class Arc(Segment):
         return abs(self.sweep) * self.radius
 
     def at(self, s: float):
+        """``Segment.at``.
+
+        Args:
+            s: Arc length, m, from ``phi0`` in the sweep's direction.
+
+        Returns:
+            (p m, unit tangent, -radial / radius 1/m), each (3,).
+        """
         sign = 1.0 if self.sweep >= 0 else -1.0
         phi = self.phi0 + sign * s / self.radius
         c, sn = math.cos(phi), math.sin(phi)
@@ -205,6 +264,15 @@ class Arc(Segment):
         return self.centre + self.radius * radial, tangent, -radial / self.radius
 
     def farthest(self, point: np.ndarray, s_end: float) -> np.ndarray:
+        """``Segment.farthest``, exact.
+
+        Args:
+            point: (3,) m.
+            s_end: m, the arc is searched over arc lengths [0, s_end].
+
+        Returns:
+            (3,) m.
+        """
         # |c + r radial(phi) - p|^2 = const + 2 r (c - p).radial(phi): largest at the ends or
         # where radial(phi) points along (c - p)'s part in the plane, if the arc gets there
         span = min(s_end, self.length) / self.radius
@@ -217,6 +285,16 @@ class Arc(Segment):
         return _farthest([self.at(sign * (a - self.phi0) * self.radius)[0] for a in angles], point)
 
     def sample(self, s: float, sd: float, sdd: float) -> TargetSample:
+        """``Segment.sample``: s'' along the tangent plus sd^2 / radius towards the centre.
+
+        Args:
+            s: Arc length from ``phi0``, m.
+            sd: Speed along the arc, m/s.
+            sdd: Its rate of change, m/s^2.
+
+        Returns:
+            Position, velocity (tangent), acceleration.
+        """
         fast = self.__dict__.get("_fast")
         if fast is None:
             fast = (_floats(self.centre), _floats(self.u), _floats(self.w))
@@ -252,13 +330,28 @@ class Trajectory(ABC):
         """The target at time t s (t < 0 counts as 0)."""
 
     def sample(self, times) -> TargetSample:
-        """The target at each of ``times`` (N,) s: pos, vel, acc each (N, 3)."""
+        """The target at several times.
+
+        Args:
+            times: (N,) s.
+
+        Returns:
+            pos m, vel m/s, acc m/s^2, each (N, 3).
+        """
         out = [self(float(t)) for t in np.asarray(times, dtype=float).ravel()]
         return TargetSample(*(np.array([getattr(o, f) for o in out]) for f in TargetSample._fields))
 
     def farthest(self, point, until: float) -> np.ndarray:
-        """(3,) m, the target over times [0, until] s farthest from ``point`` (3,) m (here:
-        sampled every 10 ms, at most 100 000 samples; exact in ``Static`` and ``Piecewise``)."""
+        """The target farthest from ``point`` (here: sampled every 10 ms, at most 100 000
+        samples; exact in ``Static`` and ``Piecewise``).
+
+        Args:
+            point: (3,) m, the trajectory's frame.
+            until: s, the target is searched over times [0, until].
+
+        Returns:
+            (3,) m, the trajectory's frame.
+        """
         end = min(float(until), self.duration)
         times = np.linspace(0.0, end, int(min(end / 0.01, 1e5)) + 2)
         return _farthest(self.sample(times).pos, np.asarray(point, dtype=float))
@@ -276,6 +369,15 @@ class Static(Trajectory):
         return TargetSample(self.point.copy(), np.zeros(3), np.zeros(3))
 
     def farthest(self, point, until: float) -> np.ndarray:
+        """``Trajectory.farthest``: the point itself.
+
+        Args:
+            point: (3,) m.
+            until: s.
+
+        Returns:
+            (3,) m.
+        """
         return self.point.copy()
 
 
@@ -301,6 +403,15 @@ class Piecewise(Trajectory):
         return self._starts[-1] + self.pieces[-1][1].duration
 
     def farthest(self, point, until: float) -> np.ndarray:
+        """``Trajectory.farthest``, exact over the segments reached by ``until``.
+
+        Args:
+            point: (3,) m.
+            until: s.
+
+        Returns:
+            (3,) m.
+        """
         point = np.asarray(point, dtype=float)
         found = []
         for (seg, prof), start in zip(self.pieces, self._starts, strict=True):
@@ -360,11 +471,21 @@ class TrajectorySpec:
         arm_origin=None,
         arm_rotation=None,
     ) -> Trajectory:
-        """The trajectory for a run whose end effector starts at ``start`` (3,) m.
+        """The trajectory for a run whose end effector starts at ``start``.
 
-        ``arm_origin`` (3,) m and ``arm_rotation`` (3, 3) are the arm base frame's pose at the
-        start, in the trajectory's frame (default: identity, the arm's own frame); they place
-        the default circle and half circle (horizontal, around the arm's vertical axis).
+        Args:
+            start: (3,) m, the end effector at the start, in the trajectory's frame.
+            arm_origin: (3,) m, the arm base frame's origin at the start, in the trajectory's
+                frame (default: zeros, the arm's own frame).
+            arm_rotation: (3, 3), its axes (default: identity). Both place the default circle
+                and half circle (horizontal, around the arm's vertical axis).
+
+        Returns:
+            The trajectory, in the frame of ``start``.
+
+        Raises:
+            InputError: ``start`` or ``arm_origin`` not a finite (3,) vector, or an option
+                the kind refuses.
         """
         start = _vec(start, "start")
         origin = np.zeros(3) if arm_origin is None else _vec(arm_origin, "arm_origin")
@@ -483,7 +604,17 @@ def _fmt(x) -> str:
 
 
 def parse_trajectory(spec: str) -> TrajectorySpec:
-    """Parse ``KIND[:key=value,...]`` (see the module doc); InputError naming the problem."""
+    """Parse ``KIND[:key=value,...]`` (see the module doc).
+
+    Args:
+        spec: The spec string.
+
+    Returns:
+        The spec, its values checked by building it once.
+
+    Raises:
+        InputError: naming the problem (unknown kind or key, a value that is not a number).
+    """
     if not isinstance(spec, str) or not spec.strip():
         raise InputError(f"trajectory spec must be a non-empty string, got {spec!r}")
     kind, _, rest = spec.strip().partition(":")

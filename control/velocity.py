@@ -55,7 +55,8 @@ def velocity_step_fn(robot: Robot, gains: VelocityGains, site: str | None = None
     """The pure (unjitted) step function.
 
     Args:
-        robot: the arm-alone model (arm base frame). gains: the ``VelocityGains``.
+        robot: the arm-alone model (arm base frame).
+        gains: the ``VelocityGains``.
         site: the end-effector site; default the robot's end effector.
 
     Returns:
@@ -86,7 +87,8 @@ def velocity_packed_fn(step_fn, n: int):
     """``step_fn`` on the impedance controller's packed input (only q, pos and vel are used).
 
     Args:
-        step_fn: a ``velocity_step_fn`` step. n: joints.
+        step_fn: a ``velocity_step_fn`` step.
+        n: joints.
 
     Returns:
         ``packed(x) -> y``: x as ``impedance_io.packed_size(n)``, y dq (n) rad/s |
@@ -132,8 +134,9 @@ class VelocityController:
         """Validated device arrays for ``step``.
 
         Args:
-            q: (n,) rad. target_pos: (3,) m. target_vel: (3,) m/s (None: zeros). Arm base
-                frame.
+            q: Joint angles, (n,) rad.
+            target_pos: (3,) m, arm base frame.
+            target_vel: (3,) m/s, arm base frame (None: zeros).
 
         Returns:
             The arguments of ``step``.
@@ -152,10 +155,18 @@ class VelocityController:
         )
 
     def checked_step(self, q, target_pos, target_vel=None):
-        """``step`` after ``check_state`` (same arguments).
+        """``step`` after ``check_state``.
+
+        Args:
+            q: Joint angles, (n,) rad.
+            target_pos: (3,) m, arm base frame.
+            target_vel: (3,) m/s, arm base frame (None: zeros).
 
         Returns:
             (dq (n,) rad/s, VelocityDiagnostics).
+
+        Raises:
+            InputError: naming a bad input.
         """
         return self.step(*self.check_state(q, target_pos, target_vel))
 
@@ -166,7 +177,8 @@ def make_velocity_controller(
     """A ``VelocityController`` for ``robot``.
 
     Args:
-        robot: the arm's own model (arm base frame). gains: default ``VelocityGains()``.
+        robot: the arm's own model (arm base frame).
+        gains: default ``VelocityGains()``.
         site: default the robot's end effector.
 
     Returns:

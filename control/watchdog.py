@@ -123,7 +123,16 @@ class Watchdog:
         return [self.joint_names[i] for i in np.flatnonzero(mask)]
 
     def check_state(self, state: ArmState, now_ns: int | None = None) -> None:
-        """Check one measured state; raises ``WatchdogTrip``."""
+        """Check one measured state.
+
+        Args:
+            state: The arm's state, t s on the robot's clock.
+            now_ns: ns (``perf_counter_ns``) it arrived, for the stall check (real time
+                only); None: no stall check.
+
+        Raises:
+            WatchdogTrip: an actuator fault, NaN/inf, stale feedback or a loop stall.
+        """
         t = state.t
         if state.faults:
             raise WatchdogTrip(FAULT, "actuator fault: " + "; ".join(state.faults), t)
@@ -169,12 +178,30 @@ class Watchdog:
             self._last_ns = now_ns
 
     def check_odometry(self, pose: np.ndarray, twist: np.ndarray, t: float | None = None) -> None:
-        """Check the base odometry (pose x, y, yaw; twist vx, vy, wz)."""
+        """Check the base odometry.
+
+        Args:
+            pose: (3,) x m, y m, yaw rad, odometry (world) frame.
+            twist: (3,) vx m/s, vy m/s, wz rad/s, base frame.
+            t: s, the arm state's time (messages).
+
+        Raises:
+            WatchdogTrip: NaN/inf in either.
+        """
         if not math.isfinite(float(pose @ pose) + float(twist @ twist)):
             raise WatchdogTrip(NAN_ODOMETRY, f"NaN/inf in the base odometry: {pose}, {twist}", t)
 
     def check_command(self, current: np.ndarray, t: float | None = None) -> None:
-        """Check one current command (n,) A before it is sent; raises ``WatchdogTrip``."""
+        """Check one command before it is sent.
+
+        Args:
+            current: The command, (n,) in ``unit`` (A; rad/s for the velocity controller).
+            t: s, the arm state's time (messages).
+
+        Raises:
+            WatchdogTrip: NaN/inf, a command beyond ``current_limit``, or one held at the
+                saturation for more than ``max_saturated_cycles``.
+        """
         mag = np.abs(current)
         mags = mag.tolist()
         if not self._within(mags, self._limit):  # NaN fails the comparison too
@@ -212,9 +239,15 @@ class Watchdog:
                 self._any_saturated = False
 
     def check_error(self, error: float, t: float | None = None) -> None:
-        """Count the cycles the end effector is more than ``max_error`` m from its target
-        (``error`` m, this cycle's, at ``t`` s from the run's start); raises ``WatchdogTrip``
-        (``not_tracking``) after ``max_error_cycles`` in a row."""
+        """Count the cycles the end effector is more than ``max_error`` m from its target.
+
+        Args:
+            error: m, this cycle's distance from the target.
+            t: s from the run's start (messages).
+
+        Raises:
+            WatchdogTrip: ``not_tracking``, after more than ``max_error_cycles`` in a row.
+        """
         if error <= self.max_error:
             self._off_target = 0
             return
@@ -234,8 +267,15 @@ class Watchdog:
 
 def safe_stop(arm: Arm | None, base: Base | None) -> list[str]:
     """Arm to POSITION mode (holding where it is) and base stopped, each tried even when the
-    other fails; returns the errors met (readable strings), never raises (except Ctrl-C
-    arriving here, after both were tried)."""
+    other fails; never raises (except Ctrl-C arriving here, after both were tried).
+
+    Args:
+        arm: The arm, or None.
+        base: The mobile base, or None.
+
+    Returns:
+        The errors met, readable strings.
+    """
     errors: list[str] = []
     interrupt: BaseException | None = None
     if arm is not None and not arm.closed:

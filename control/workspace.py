@@ -32,7 +32,18 @@ class Reach:
 
 
 def arm_reach(robot: Robot, site: str) -> Reach:
-    """The reach of ``robot``'s site ``site`` (see the module doc)."""
+    """The reach of ``robot``'s site ``site`` (see the module doc).
+
+    Args:
+        robot: The arm-alone model.
+        site: The end-effector site's name.
+
+    Returns:
+        Its ``Reach``, arm base frame.
+
+    Raises:
+        InputError: an unknown site.
+    """
     robot.site_index(site)  # InputError for an unknown site
     m = robot.model
     d = mujoco.MjData(m)
@@ -53,8 +64,19 @@ def arm_reach(robot: Robot, site: str) -> Reach:
 
 
 def check_reachable(traj: Trajectory, until: float, origin, radius: float, name: str) -> None:
-    """InputError if the target of ``traj`` over [0, until] s gets farther than ``radius`` m
-    from ``origin`` (3,) m (the arm's ``Reach`` in the trajectory's frame)."""
+    """Refuse a trajectory whose target gets beyond the arm's reach.
+
+    Args:
+        traj: The trajectory.
+        until: s, the end of the run.
+        origin: The ``Reach`` origin, (3,) m, in the trajectory's frame.
+        radius: The ``Reach`` radius, m.
+        name: The arm's model name (messages).
+
+    Raises:
+        InputError: the target over [0, until] s gets farther than ``radius`` from
+            ``origin``.
+    """
     origin = np.asarray(origin, dtype=float)
     far = traj.farthest(origin, until)
     distance = float(np.linalg.norm(far - origin))

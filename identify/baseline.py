@@ -91,10 +91,15 @@ def phase_fit(theta, c, weights=None) -> tuple[float, float]:
     """Eq. (19): ``s*, delta* = argmin sum_i w_i (c_i - s sin(theta_i + delta))^2``.
 
     Args:
-        theta: (N,) rad, joint angles. c: (N,) values (A, or N m for a model torque).
+        theta: (N,) rad, joint angles.
+        c: (N,) values (A, or N m for a model torque).
         weights: (N,) >= 0 sample weights (e.g. bin counts), default ones.
+
     Returns:
         s >= 0 (units of c) and delta in [-pi, pi) rad.
+
+    Raises:
+        InputError: shapes that differ, fewer than 2 finite samples, or bad weights.
     """
     theta = np.asarray(theta, dtype=float)
     c = np.asarray(c, dtype=float)

@@ -106,12 +106,24 @@ def fit_each(
     compiled) for a batch like the first recording while the rest of the first batch is read,
     and a recording is let go once packed.
 
-    ``batch``: recordings per call (default 256 on an accelerator; 4 on a CPU, where a smaller
-    batch maps less fresh memory and starts the device sooner). ``workers``: host threads that
-    pack the recordings (``_GROUP`` to a transfer) and send them to the device (default: up to
-    8 on an accelerator, where more only contend for host memory bandwidth; 1 on a CPU).
-    ``com_prior``: m, as ``fit``'s. Raises ``FitError`` naming the recordings whose fit did not
-    converge (no result then).
+    Args:
+        recordings: The recordings, of one robot model (a generator may load them).
+        batch: Recordings per call (default 256 on an accelerator; 4 on a CPU, where a
+            smaller batch maps less fresh memory and starts the device sooner).
+        progress: Show a progress bar.
+        workers: Host threads that pack the recordings (``_GROUP`` to a transfer) and send
+            them to the device (default: up to 8 on an accelerator, where more only contend
+            for host memory bandwidth; 1 on a CPU).
+        com_prior: m, as ``fit``'s.
+        transfers: Fit the transfers' samples too.
+
+    Returns:
+        One params set per recording, in order.
+
+    Raises:
+        InputError: no recording, recordings of several models, or one that fails the
+            plausibility checks.
+        FitError: naming the recordings whose fit did not converge (no result then).
     """
     accelerated = not on_cpu()
     batch = int(batch or (256 if accelerated else 4))
@@ -319,8 +331,18 @@ def compile_fit_batch(
     """Compile ``fit_batch``'s program for batches of ``batch`` recordings with moments and
     transfer bins like ``like`` and ``transfers`` (stacked; any number of rows) ahead of the
     data themselves, e.g. while the simulation that makes them runs on the same device:
-    without autotuning, which would time its candidate kernels behind that work; the seconds
-    spent (0 when compiled before)."""
+    without autotuning, which would time its candidate kernels behind that work.
+
+    Args:
+        model: The fit model.
+        like: Stacked moments shaped like the data's (any number of rows).
+        batch: Recordings per batch.
+        mesh: As ``fit_batch``'s.
+        transfers: Stacked transfer bins shaped like the data's; None: sweeps alone.
+
+    Returns:
+        s spent compiling (0 when compiled before).
+    """
     padded, b, size, _ = _batch_input(like, transfers, batch, mesh)
     sharding = None if mesh is None else NamedSharding(mesh, PartitionSpec("batch"))
     shaped = jax.tree.map(
@@ -344,15 +366,28 @@ def fit_batch(
     """Fit W recordings each on its own from their stacked sweep moments, on the default
     backend (a GPU when present), ``batch`` at a time in one vmapped computation.
 
-    ``moments``: a ``SweepMoments`` with a leading axis W on every field (joint (W, S), hold
-    (W, S, n), moments (W, S, 6, 6), count (W, S), gravity (W, 3), payload_mass (W,),
-    payload_com (W, 3)), e.g. ``identify.sweep_reduction.sweep_moments_batch``; a sweep of zero
-    moments adds nothing. ``transfers``: the recordings' stacked ``TransferBins`` (W, B, n) (None:
-    sweeps alone). ``mesh``: a ``jax.sharding.Mesh`` with the single axis "batch" to shard each
-    batch over (its devices); the batch is rounded up to a multiple of the mesh size and the
-    last batch padded with copies of the last recording (dropped). The results are those of
-    ``solve`` per recording; non-converged fits are reported in ``solution.converged``, not
-    raised. ``progress(k)`` after each batch of k recordings.
+    The results are those of ``solve`` per recording; non-converged fits are reported in
+    ``solution.converged``, not raised.
+
+    Args:
+        model: The fit model.
+        moments: A ``SweepMoments`` with a leading axis W on every field (joint (W, S), hold
+            (W, S, n) rad, moments (W, S, D, D) with D = ``moments.moment_size(n)``, count
+            (W, S), gravity (W, 3) m/s^2, payload_mass (W,) kg, payload_com (W, 3) m), e.g.
+            ``identify.sweep_reduction.sweep_moments_batch``; a sweep of zero moments adds
+            nothing.
+        transfers: The recordings' stacked ``TransferBins`` (W, B, n); None: sweeps alone.
+        batch: Recordings per computation (default: all W).
+        mesh: A ``jax.sharding.Mesh`` with the single axis "batch" to shard each batch over
+            (its devices); the batch is rounded up to a multiple of the mesh size and the
+            last batch padded with copies of the last recording (dropped).
+        progress: Called as ``progress(k)`` after each batch of k recordings.
+
+    Returns:
+        The fits, host arrays with a leading axis W.
+
+    Raises:
+        InputError: moments not stacked.
     """
     w = int(moments.moments.shape[0])
     if w < 1 or moments.moments.ndim != 4:
@@ -380,6 +415,12 @@ def fit_batch(
 
 
 def identified(sol: Solution) -> np.ndarray:
-    """(..., P) bool: which of [ratio, friction, viscous, com] the data determine in a fit
-    (``Solution.identified``; ratios also to ``RATIO_IDENTIFIED``)."""
+    """Which of [ratio, friction, viscous, com] the data determine in a fit.
+
+    Args:
+        sol: A solution (or a batch of them).
+
+    Returns:
+        (..., P) bool (``Solution.identified``; ratios also to ``RATIO_IDENTIFIED``).
+    """
     return np.asarray(sol.identified, bool)

@@ -31,8 +31,17 @@ from jaxcomp.robot_params import RobotParams, arm_joint_indices
 
 
 def random_poses(robot: Robot, count: int, seed: int = 0) -> np.ndarray:
-    """(count, n) rad: poses drawn uniformly within the current-controlled joints' limits
-    (-pi .. pi for a continuous joint)."""
+    """Poses drawn uniformly within the current-controlled joints' limits (-pi .. pi for a
+    continuous joint).
+
+    Args:
+        robot: The robot.
+        count: Poses.
+        seed: Of the random generator.
+
+    Returns:
+        (count, n) rad.
+    """
     lo, hi = robot.joint_limits[arm_joint_indices(robot)].T
     lo, hi = np.maximum(lo, -np.pi), np.minimum(hi, np.pi)
     return np.random.default_rng(seed).uniform(lo, hi, (count, len(lo)))
@@ -45,9 +54,18 @@ def gravity_torque_at(
     poses: jax.Array,
     com_offset: jax.Array,
 ) -> jax.Array:
-    """(P, n) N m: g(q) of the joints ``joints`` at ``poses`` (P, nv) rad, for the nominal
-    model with every link's COM moved by ``com_offset`` (nb, 3) m (link frame). Pure;
-    jit/vmap-able."""
+    """g(q) for the nominal model with every link's COM moved. Pure; jit/vmap-able.
+
+    Args:
+        tree: The robot's kinematic tree.
+        nominal: Its nominal inertials.
+        joints: (n,) int, the current-controlled joints among the nv.
+        poses: (P, nv) rad.
+        com_offset: (nb, 3) m, added to every link's COM, link frame.
+
+    Returns:
+        (P, n) N m, the joints ``joints``' gravity torques.
+    """
     p = nominal._replace(com=nominal.com + com_offset)
     return jax.vmap(lambda q: dynamics.gravity(tree, q, p))(poses)[:, joints]
 
@@ -60,8 +78,19 @@ def gravity_current_at(
     ratio: jax.Array,
     com_offset: jax.Array,
 ) -> jax.Array:
-    """(P, n) A: the gravity current r g(q) (Eq. 7) of ``gravity_torque_at``, for ratios
-    ``ratio`` (n,) A/(N m). Pure; jit/vmap-able."""
+    """The gravity current r g(q) (Eq. 7) of ``gravity_torque_at``. Pure; jit/vmap-able.
+
+    Args:
+        tree: The robot's kinematic tree.
+        nominal: Its nominal inertials.
+        joints: (n,) int, the current-controlled joints among the nv.
+        poses: (P, nv) rad.
+        ratio: (n,) A/(N m).
+        com_offset: (nb, 3) m, added to every link's COM, link frame.
+
+    Returns:
+        (P, n) A.
+    """
     return torque_to_current(gravity_torque_at(tree, nominal, joints, poses, com_offset), ratio)
 
 
@@ -75,12 +104,23 @@ def gravity_current_squares(
     ratio: jax.Array,
     com: jax.Array,
 ) -> tuple[jax.Array, jax.Array]:
-    """The gravity-current error of W models against W truths, as mean squares over the poses:
-    (error, truth) (W, n) A^2 each, per world and joint.
+    """The gravity-current error of W models against W truths, as mean squares over the
+    poses, with I = ``gravity_current_at`` of ``ratio`` and ``com``, I_true of
+    ``truth_ratio`` and ``truth_com``. Pure; jit-able.
 
-    error: mean over ``poses`` (P, nv) rad of (I(q) - I_true(q))^2, truth: of I_true(q)^2,
-    with I = ``gravity_current_at`` of ``ratio`` (W, n) A/(N m) and COM offsets ``com``
-    (W, nb, 3) m, I_true of ``truth_ratio`` and ``truth_com``. Pure; jit-able.
+    Args:
+        tree: The robot's kinematic tree.
+        nominal: Its nominal inertials.
+        joints: (n,) int, the current-controlled joints among the nv.
+        poses: (P, nv) rad.
+        truth_ratio: (W, n) A/(N m).
+        truth_com: (W, nb, 3) m, COM offsets, link frame.
+        ratio: (W, n) A/(N m).
+        com: (W, nb, 3) m, COM offsets, link frame.
+
+    Returns:
+        (error, truth), (W, n) A^2 each: the mean over the poses of (I(q) - I_true(q))^2 and
+        of I_true(q)^2.
     """
 
     def current(r: jax.Array, c: jax.Array) -> jax.Array:
@@ -120,7 +160,19 @@ def _com_offsets(robot: Robot, params: RobotParams) -> np.ndarray:
 
 
 def gravity_current(robot: Robot, params: RobotParams, poses: np.ndarray) -> np.ndarray:
-    """(count, n) A: ratio x g(q) of ``params`` at ``poses`` (arm joints, default gravity)."""
+    """The gravity current ratio x g(q) of ``params`` (default gravity).
+
+    Args:
+        robot: The robot.
+        params: Its identified params.
+        poses: (count, n) rad of the current-controlled joints.
+
+    Returns:
+        (count, n) A.
+
+    Raises:
+        InputError: ``params`` do not fit ``robot``.
+    """
     fn = _jitted(robot, gravity_current_at)
     return np.asarray(fn(_full_poses(robot, poses), params.ratio, _com_offsets(robot, params)))
 
@@ -128,8 +180,21 @@ def gravity_current(robot: Robot, params: RobotParams, poses: np.ndarray) -> np.
 def gravity_current_error(
     robot: Robot, truth: RobotParams, fitted: RobotParams, poses: np.ndarray
 ) -> np.ndarray:
-    """(n,) per joint: RMS error of the predicted gravity current over ``poses``, relative to
-    the RMS true gravity current (NaN for a joint gravity never loads)."""
+    """The RMS error of the predicted gravity current over ``poses``, relative to the RMS
+    true gravity current.
+
+    Args:
+        robot: The robot.
+        truth: The true params.
+        fitted: The params to judge.
+        poses: (P, n) rad of the current-controlled joints.
+
+    Returns:
+        (n,) per joint, relative (NaN for a joint gravity never loads).
+
+    Raises:
+        InputError: params that do not fit ``robot``.
+    """
     return gravity_current_error_batch(
         robot,
         truth.ratio[None],
@@ -161,12 +226,28 @@ def gravity_current_error_batch(
     true gravity current over both; ``joints`` (W, n) bool: pool over these joints of each world
     only (default: all; NaN where they carry no gravity current).
 
-    ``truth_ratio``, ``ratio``: (W, n) A/(N m); ``truth_com``, ``com``: (W, nb, 3) m, COM
-    offsets of every link (``robot.link_names`` order, link frame) added to the nominal model;
-    ``poses`` (P, n) rad of the current-controlled joints; default gravity, no payload.
-    Worlds go ``batch`` at a time (the last batch padded), one compilation per robot and shape;
-    ``fixed``: ``batch`` worlds also when W is smaller (padded), so that a world's numbers are
-    those of one compiled batch shape whatever the other worlds.
+    Default gravity, no payload. Worlds go ``batch`` at a time (the last batch padded), one
+    compilation per robot and shape.
+
+    Args:
+        robot: The robot.
+        truth_ratio: (W, n) A/(N m).
+        truth_com: (W, nb, 3) m, COM offsets of every link (``robot.link_names`` order, link
+            frame) added to the nominal model.
+        ratio: (W, n) A/(N m).
+        com: (W, nb, 3) m, as ``truth_com``.
+        poses: (P, n) rad of the current-controlled joints.
+        batch: Worlds per compiled call.
+        pooled: Pool over the joints (see above).
+        joints: (W, n) bool, the joints to pool over; None: all.
+        fixed: ``batch`` worlds also when W is smaller (padded), so that a world's numbers
+            are those of one compiled batch shape whatever the other worlds.
+
+    Returns:
+        (W, n) relative errors, or (W,) pooled.
+
+    Raises:
+        InputError: arrays of the wrong shapes.
     """
     truth_ratio, ratio = np.asarray(truth_ratio, float), np.asarray(ratio, float)
     truth_com, com = np.asarray(truth_com, float), np.asarray(com, float)
@@ -196,15 +277,25 @@ def gravity_current_error_batch(
 
 
 def error_statistics(error: np.ndarray, std: np.ndarray | None = None, z: float = 1.96) -> dict:
-    """Per-parameter statistics of estimate errors over W independent fits.
+    """Per-parameter statistics of estimate errors over W independent fits. NaN entries are
+    ignored.
 
-    ``error`` (W, P): estimate minus truth; ``std`` (W, P): the standard errors the fit
-    reported (NaN or <= 0 where it reported none). Returns arrays (P,): ``bias`` (mean),
-    ``rmse``, ``spread`` (standard deviation, ddof 1; NaN for W < 2), ``median_abs``,
-    ``p95_abs``; with ``std`` also ``std_median``, ``std_rms`` (RMS of the reported std),
-    ``coverage`` (fraction of fits with |error| < z std: 0.95 for z = 1.96 when the std are
-    right) and ``spread_over_std`` (empirical spread / RMS reported std: 1 when the reported
-    std, the Cramer-Rao bound of the fit, match the actual scatter). NaN entries are ignored.
+    Args:
+        error: (W, P), estimate minus truth, in each parameter's unit.
+        std: (W, P), the standard errors the fit reported (NaN or <= 0 where it reported
+            none); None: none.
+        z: Coverage multiple of the std.
+
+    Returns:
+        Arrays (P,): ``bias`` (mean), ``rmse``, ``spread`` (standard deviation, ddof 1; NaN
+        for W < 2), ``median_abs``, ``p95_abs``; with ``std`` also ``std_median``,
+        ``std_rms`` (RMS of the reported std), ``coverage`` (fraction of fits with |error| <
+        z std: 0.95 for z = 1.96 when the std are right) and ``spread_over_std`` (empirical
+        spread / RMS reported std: 1 when the reported std, the Cramer-Rao bound of the fit,
+        match the actual scatter).
+
+    Raises:
+        InputError: ``error`` not 2-D, or ``std`` of another shape.
     """
     error = np.asarray(error, float)
     if error.ndim != 2:

@@ -295,5 +295,12 @@ def padded_sweeps(m: SweepMoments, size: int, axis: int = 0) -> SweepMoments:
 
 
 def sweep_bucket(n: int) -> int:
-    """The padded sweep count of ``n`` sweeps: ``n`` rounded up to ``SWEEP_BUCKET``."""
+    """The padded sweep count of ``n`` sweeps.
+
+    Args:
+        n: Sweeps.
+
+    Returns:
+        ``n`` rounded up to ``SWEEP_BUCKET``.
+    """
     return -(-n // SWEEP_BUCKET) * SWEEP_BUCKET

@@ -22,7 +22,16 @@ def short_plan(
     """A quick plan for CPU runs and CI (~30 s instead of ~230 s for the Gen3 Lite): one sweep
     per joint over -40..+40 deg (the default plan's held-pose search), sweeps at ``speed`` and
     transfers at ``move_speed`` rad/s (55 deg/s: within the arms' 1 rad/s speed limit), 0.2 s
-    settling. One speed per joint: the fit holds viscous friction at 0."""
+    settling. One speed per joint: the fit holds viscous friction at 0.
+
+    Args:
+        robot: The robot.
+        speed: rad/s, of the sweeps.
+        move_speed: rad/s, of the transfers.
+
+    Returns:
+        The plan.
+    """
     return default_plan(
         robot,
         sweeps_per_joint=1,
@@ -37,8 +46,17 @@ def short_plan(
 
 
 def random_count(plan: str) -> int | None:
-    """How many plans a random name stands for: K of "random:K", 1 of "random"; None for any
-    other name. InputError for "random:" without a count K >= 1."""
+    """How many plans a random name stands for.
+
+    Args:
+        plan: A ``--plan`` value.
+
+    Returns:
+        K of "random:K", 1 of "random"; None for any other name.
+
+    Raises:
+        InputError: "random:" without a count K >= 1.
+    """
     if plan == "random":
         return 1
     if not plan.startswith("random:"):
@@ -50,20 +68,50 @@ def random_count(plan: str) -> int | None:
 
 
 def plan_count(plan: str) -> int:
-    """How many plans ``plan`` names: K for "random:K", else 1."""
+    """How many plans ``plan`` names.
+
+    Args:
+        plan: A ``--plan`` value.
+
+    Returns:
+        K for "random:K", else 1.
+
+    Raises:
+        InputError: "random:" without a count K >= 1.
+    """
     return random_count(plan) or 1
 
 
 def check_plan_name(plan: str) -> None:
-    """InputError unless ``plan`` is one of ``PLANS`` or an existing file."""
+    """Refuse a ``--plan`` value that names no plan.
+
+    Args:
+        plan: A ``--plan`` value.
+
+    Raises:
+        InputError: ``plan`` is neither one of ``PLANS`` nor an existing file.
+    """
     if random_count(plan) is None and plan not in PLANS and not Path(plan).is_file():
         raise InputError(f"--plan must be one of {', '.join(PLANS)} or a plan JSON file: {plan}")
 
 
 def named_plan(robot: Robot, plan: str, *, seed: int = 0, group: int = 0) -> CalibrationPlan:
-    """``plan``: "default" (``default_plan``), "short" (``short_plan``), a plan JSON file, or
-    "random" / "random:K": plan ``group`` (0 <= group < K) of K random plans drawn from
-    ``seed`` (``random_plan(robot, plan_seed(seed, group))``)."""
+    """The plan a ``--plan`` value names.
+
+    Args:
+        robot: The robot.
+        plan: "default" (``default_plan``), "short" (``short_plan``), a plan JSON file, or
+            "random" / "random:K".
+        seed: Of the random plans.
+        group: Which of the K random plans, 0 <= group < K
+            (``random_plan(robot, plan_seed(seed, group))``).
+
+    Returns:
+        The plan (a file's validated against ``robot``).
+
+    Raises:
+        InputError: an unknown name, a group outside 0..K-1, or a bad plan file.
+    """
     check_plan_name(plan)
     count = random_count(plan)
     if count is not None:

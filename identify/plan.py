@@ -147,7 +147,14 @@ class Sweep:
         object.__setattr__(self, "via", via)
 
     def pose(self, angle: float) -> np.ndarray:
-        """(n,) rad: the hold pose with the swept joint at ``angle`` rad."""
+        """The hold pose with the swept joint at ``angle``.
+
+        Args:
+            angle: rad.
+
+        Returns:
+            (n,) rad.
+        """
         q = np.array(self.hold)
         q[self.joint] = angle
         return q
@@ -163,7 +170,14 @@ class Sweep:
         return self.pose(self.upper)
 
     def samples(self, ramp: float = RAMP) -> int:
-        """1 kHz samples of the sweep's two moves (up and down, ramps of ``ramp`` s)."""
+        """1 kHz samples of the sweep's two moves (up and down).
+
+        Args:
+            ramp: s, time of each move's speed ramps.
+
+        Returns:
+            The sample count.
+        """
         return 2 * _move_steps(self.upper - self.lower, self.speed, ramp)
 
     def to_dict(self) -> dict:
@@ -239,6 +253,15 @@ class CalibrationPlan:
         Checks joint indices, pose sizes, and that every pose (hold, ``lower``, ``upper``,
         ``via``) lies inside the joint limits less ``LIMIT_MARGIN`` (1 deg), the range that
         ``Arm.move_to`` accepts; angles beyond 2 pi + 0.5 rad are reported as degrees.
+
+        Args:
+            robot: The robot (name, path or ``Robot``).
+
+        Returns:
+            The plan itself.
+
+        Raises:
+            InputError: naming the sweep, the field and the joint that do not fit.
         """
         robot = load_robot(robot)
         arm = arm_joint_indices(robot)
@@ -286,10 +309,12 @@ class CalibrationPlan:
     def moves(self, sweeps: Iterable[int] | None = None) -> Iterator[tuple]:
         """The ``Arm.move_to`` calls that record the plan, in order.
 
-        Yields (sweep index, kind, target (n,) rad, speed rad/s, accel rad/s^2, settle s);
-        kind is "via",
-        "start" (the transfer's last move, then ``settle``), "up" or "down". ``sweeps``
-        limits the plan to these indices (when resuming).
+        Args:
+            sweeps: Only these sweep indices (when resuming); None: all.
+
+        Yields:
+            (sweep index, kind, target (n,) rad, speed rad/s, accel rad/s^2, settle s); kind
+            is "via", "start" (the transfer's last move, then ``settle``), "up" or "down".
         """
         todo = range(len(self.sweeps)) if sweeps is None else list(sweeps)
         for i in todo:
@@ -306,8 +331,12 @@ class CalibrationPlan:
     ) -> int:
         """1 kHz samples (= cycles) that recording the plan takes.
 
-        ``start`` (n,) rad: where the arm begins (default: at the first move's target);
-        ``sweeps``: only these sweep indices (see ``moves``).
+        Args:
+            start: (n,) rad, where the arm begins (default: at the first move's target).
+            sweeps: Only these sweep indices (see ``moves``).
+
+        Returns:
+            The sample count.
         """
         total = 0
         pose = None if start is None else np.asarray(start, float)
@@ -320,7 +349,15 @@ class CalibrationPlan:
     def duration(
         self, start: Sequence[float] | None = None, sweeps: Iterable[int] | None = None
     ) -> float:
-        """Seconds that recording the plan takes (see ``samples``)."""
+        """The time that recording the plan takes.
+
+        Args:
+            start: (n,) rad, where the arm begins (see ``samples``).
+            sweeps: Only these sweep indices.
+
+        Returns:
+            s.
+        """
         return self.samples(start, sweeps) * CONTROL_PERIOD
 
     # ----------------------------------------------------------------- files
@@ -337,11 +374,25 @@ class CalibrationPlan:
         }
 
     def save(self, path: str | Path) -> Path:
-        """Write the plan as JSON (atomically: never half-written)."""
+        """Write the plan as JSON (atomically: never half-written).
+
+        Args:
+            path: The file.
+
+        Returns:
+            The path written.
+        """
         return write_json_atomic(path, self.to_dict())
 
     def describe(self, start: Sequence[float] | None = None) -> str:
-        """A table of the sweeps for people (degrees, seconds)."""
+        """A table of the sweeps for people (degrees, seconds).
+
+        Args:
+            start: (n,) rad, where the arm begins (for the total duration).
+
+        Returns:
+            The table, lines joined.
+        """
         lines = [f"{'#':>3} {'joint':>5} {'range (deg)':>12} {'deg/s':>6} {'s':>5}  hold (deg)"]
         for i, s in enumerate(self.sweeps):
             hold = " ".join(
@@ -361,7 +412,17 @@ class CalibrationPlan:
 
 
 def plan_from_dict(data: Mapping[str, Any]) -> CalibrationPlan:
-    """A plan from its JSON contents; InputError naming the field otherwise."""
+    """A plan from its JSON contents.
+
+    Args:
+        data: The parsed JSON object (see the module doc).
+
+    Returns:
+        The plan (not yet validated against a robot).
+
+    Raises:
+        InputError: naming the field at fault.
+    """
     if not isinstance(data, Mapping):
         raise InputError(f"a plan must be a JSON object, got {type(data).__name__}")
     if data.get("format", FORMAT) != FORMAT:
@@ -396,7 +457,18 @@ def plan_from_dict(data: Mapping[str, Any]) -> CalibrationPlan:
 
 
 def load_plan(path: str | Path, robot: Robot | str | None = None) -> CalibrationPlan:
-    """Read a plan JSON file (validated against ``robot`` when given); InputError otherwise."""
+    """Read a plan JSON file.
+
+    Args:
+        path: The file.
+        robot: Validate the plan against this robot (name, path or ``Robot``); None: don't.
+
+    Returns:
+        The plan.
+
+    Raises:
+        InputError: a missing or unreadable file, or a bad plan (naming the file).
+    """
     path = Path(path)
     if not path.is_file():
         raise InputError(f"plan file not found: {path}")
@@ -413,8 +485,19 @@ def load_plan(path: str | Path, robot: Robot | str | None = None) -> Calibration
 
 # --------------------------------------------------------------------- simple plans
 def arm_pose(robot: Robot, pose: str | Sequence[float] | None = None) -> np.ndarray:
-    """(n,) rad of the current-controlled joints: a named pose, an array, or (None)
-    ``Robot.idle_pose`` (the "home" keyframe, else the rest pose)."""
+    """A pose of the current-controlled joints.
+
+    Args:
+        robot: The robot.
+        pose: A named pose, an (n,) array in rad, or None: ``Robot.idle_pose`` (the "home"
+            keyframe, else the rest pose).
+
+    Returns:
+        (n,) rad.
+
+    Raises:
+        InputError: an unknown pose name, or an array not finite (n,).
+    """
     arm = arm_joint_indices(robot)
     if pose is None:
         pose = robot.idle_pose[arm]
@@ -445,7 +528,18 @@ def plan_for_joints(
         joints: swept joint index, or indices, among the current-controlled joints.
         hold: (n,) rad or a named pose; default ``Robot.idle_pose`` (the "home" keyframe,
             else the rest pose).
-        lower, upper: rad; speed, move_speed: rad/s; settle, ramp: s.
+        lower: rad, start of each sweep.
+        upper: rad, where it turns back.
+        speed: rad/s, of the sweeps.
+        move_speed: rad/s, of the transfers.
+        settle: s, the hold at each sweep's start.
+        ramp: s, time of every move's speed ramps.
+
+    Returns:
+        The plan, validated against ``robot``.
+
+    Raises:
+        InputError: a bad value, or a sweep that does not fit the robot.
 
     ``plan_for_joints("gen3_lite", 1, lower=-0.35, upper=0.35)``: joint 1 over +-20 deg at
     40 deg/s from the home pose.

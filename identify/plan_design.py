@@ -67,8 +67,10 @@ def sweep_window(lower: float, upper: float, lo: float, hi: float) -> tuple[floa
     it lost there (as far as the other limit allows).
 
     Args:
-        lower, upper: rad, the sweep wanted.
-        lo, hi: rad, the joint's (inner) limits.
+        lower: rad, the sweep's wanted start.
+        upper: rad, its wanted end.
+        lo: rad, the joint's (inner) lower limit.
+        hi: rad, its (inner) upper limit.
 
     Returns:
         (lower, upper) rad, the sweep within ``lo``..``hi`` (empty, lower >= upper, when the

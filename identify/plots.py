@@ -31,8 +31,19 @@ _COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
 def predicted_current(
     rec: Recording, params: RobotParams, q: np.ndarray, joint: np.ndarray, direction: np.ndarray
 ) -> np.ndarray:
-    """Eq. (13) current (A) of the swept joint ``joint`` (B,) at poses ``q`` (B, n) rad moving
-    in ``direction`` (B,) (+1 or -1), for ``params`` and the recording's gravity and payload."""
+    """Eq. (13) current of the swept joint, for ``params`` and the recording's gravity and
+    payload.
+
+    Args:
+        rec: The recording (its model, gravity and payload).
+        params: The params set.
+        q: Poses, (B, n) rad.
+        joint: The swept joint at each, (B,) int.
+        direction: Its direction, (B,) +1 or -1.
+
+    Returns:
+        (B,) A.
+    """
     robot = rec.robot()
     joints = arm_joint_indices(robot)
     inertial = params.inertial_params(robot)
@@ -47,7 +58,16 @@ def predicted_current(
 
 def plot_sweeps(rec: Recording, fits: Mapping[str, RobotParams], path: str | Path) -> Path:
     """Per joint: measured current (bin means) and each fit's model over the swept angle
-    (deg), forward and backward; residuals (A) in the row below. Writes a PNG."""
+    (deg), forward and backward; residuals (A) in the row below.
+
+    Args:
+        rec: The recording.
+        fits: Params sets by label.
+        path: The PNG file.
+
+    Returns:
+        The path written.
+    """
     bins = bin_sweeps(rec)
     joints = np.unique(bins.joint)
     fig, axes = plt.subplots(
@@ -91,7 +111,15 @@ def plot_sweeps(rec: Recording, fits: Mapping[str, RobotParams], path: str | Pat
 
 def plot_batch(results: Sequence[RobotParams], path: str | Path) -> Path:
     """Boxplots over many fits of the COM offsets (mm, minus their median) and of ratio and
-    friction (normalized by their median), as the paper's Fig. 11-12. Writes a PNG."""
+    friction (normalized by their median), as the paper's Fig. 11-12.
+
+    Args:
+        results: The fits' params sets.
+        path: The PNG file.
+
+    Returns:
+        The path written.
+    """
     links = sorted({k for r in results for k in r.com_offset})
     com = np.array([[r.com_offset.get(k, np.zeros(3)) for k in links] for r in results]) * 1e3
     com = com - np.median(com, axis=0)

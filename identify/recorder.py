@@ -98,8 +98,20 @@ def check_resume(
 ) -> list[int]:
     """The plan sweeps an interrupted ``record`` into ``path`` finished (empty when there is
     nothing to resume), after checking that it recorded the same ``plan`` on the same
-    ``model`` (and joints) with the same ``settings`` (as ``record`` takes them);
-    InputError naming what differs otherwise. Reads only."""
+    ``model`` (and joints) with the same ``settings`` (as ``record`` takes them). Reads only.
+
+    Args:
+        path: The recording ``record`` was writing.
+        plan: The plan to resume.
+        model: The robot (or its name).
+        settings: ``record``'s settings; None: not compared.
+
+    Returns:
+        The indices of the finished sweeps.
+
+    Raises:
+        InputError: naming what differs.
+    """
     path = Path(path)
     manifest = read_manifest(path)
     if manifest is None:
@@ -151,8 +163,10 @@ def record(
         path: the recording to write; part files go to ``<path>.parts/`` meanwhile.
         model: the robot model (name, path or ``Robot``) stored in the recording with its
             current-controlled joints' names (which must match the arm's).
-        gravity: (3,) m/s^2 in the base frame; payload_mass: kg; payload_com: (3,) m in the
-            end-effector frame (recording metadata; None leaves the field out).
+        gravity: (3,) m/s^2 in the arm's base frame (recording metadata; None leaves the
+            field out, as for the payload's).
+        payload_mass: kg.
+        payload_com: (3,) m in the end-effector frame.
         progress: show a tqdm bar over the plan's samples.
         resume: keep the sweeps an interrupted ``record`` of the same plan to ``path``
             finished, and record only the others (``check_resume``: InputError when the
@@ -162,10 +176,15 @@ def record(
         on_state: called with every state recorded and the fraction of the plan's samples
             done (0-1), e.g. for a progress display; keep it quick (it runs every 1 ms).
 
+    Returns:
+        The recording written.
+
+    Raises:
+        InputError: before moving, for a plan, model or metadata that does not fit.
+
     On any exception (KeyboardInterrupt included) the finished sweeps are joined into
     ``path``, a loadable recording, and stay in the part files for a resume; the exception
     propagates. ``jaxcomp.recording.recover(path)`` also joins the unfinished sweep.
-    Raises InputError before moving for a plan, model or metadata that does not fit.
     """
     robot, name, joints = _recorded_model(model)
     n = len(joints)

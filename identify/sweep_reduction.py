@@ -156,7 +156,9 @@ def reduce_batch(p: Packed, L: int, fraction: float, trim: float, sequential: bo
 
     Args:
         p: packed recordings, a leading axis on every field.
-        L, fraction, trim: as ``reduce_packed``'s.
+        L: as ``reduce_packed``'s.
+        fraction: as ``reduce_packed``'s.
+        trim: as ``reduce_packed``'s.
         sequential: one recording after another rather than vmapped (on a CPU: the
             temporaries of one recording rather than of the batch, whose fresh memory cost as
             much system time as the reduction took).

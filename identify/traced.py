@@ -64,9 +64,19 @@ def program(
     """``fn`` (a function of arrays and pytrees of them, jit-able) compiled for arguments like
     ``args`` (arrays, or ``jax.ShapeDtypeStruct`` to load it before the data are there), from
     its traced program kept on disk when a compilation cache folder is set; kept in this
-    process. ``statics``: a stable text of what ``fn`` closes over (e.g. a model's identity);
-    ``types``: the NamedTuple types of its arguments and results (registered for
-    serialization)."""
+    process.
+
+    Args:
+        name: The program's name (file names).
+        statics: A stable text of what ``fn`` closes over (e.g. a model's identity).
+        fn: The function.
+        args: Example arguments: arrays, or ``jax.ShapeDtypeStruct``.
+        types: The NamedTuple types of its arguments and results (registered for
+            serialization).
+
+    Returns:
+        The compiled function, taking arguments like ``args``.
+    """
     folder = cache_folder()
     if importlib.util.find_spec("flatbuffers") is None:  # export needs it
         folder = None
@@ -80,7 +90,18 @@ def program(
 
 
 def call(name: str, statics: str, fn: Callable, args: tuple, types: tuple[type, ...] = ()) -> Any:
-    """``fn(*args)`` through its ``program``."""
+    """``fn(*args)`` through its ``program``.
+
+    Args:
+        name: The program's name.
+        statics: A stable text of what ``fn`` closes over.
+        fn: The function.
+        args: Its arguments.
+        types: The NamedTuple types of its arguments and results.
+
+    Returns:
+        What ``fn`` returns.
+    """
     return program(name, statics, fn, args, types)(*args)
 
 

@@ -13,7 +13,7 @@ servos still ring after a cruise's start, and on a heavy arm's base joint M ddq 
 
 A transfer loads the joints in poses and combinations no sweep visits (each sweep holds all but
 one joint), and its samples are as many as the sweeps' on a random plan: the joint fit's error
-roughly halves with them (issue 14).
+roughly halves with them.
 
 Which samples count, decided from the recording alone as ``identify.bins.steady`` does for a
 sweep: a transfer leg is a run of samples labelled with no sweep (``joint`` -1) whose fastest
@@ -78,19 +78,42 @@ class TransferBins(NamedTuple):
 
 
 def empty_bins(n: int, size: int = 0, stack: int | None = None) -> TransferBins:
-    """``size`` transfer bins of n joints that count nothing (``stack``: that many such
-    recordings, stacked)."""
+    """Transfer bins that count nothing.
+
+    Args:
+        n: Joints.
+        size: Bins, B.
+        stack: That many such recordings, stacked (W); None: one, unstacked.
+
+    Returns:
+        Bins of zeros, each field (B, n) or (W, B, n).
+    """
     shape = (size, n) if stack is None else (stack, size, n)
     return TransferBins(*(np.zeros(shape) for _ in TransferBins._fields))
 
 
 def bucket(size: int) -> int:
-    """``size`` bins rounded up to ``BIN_BUCKET`` (at least one bucket)."""
+    """A bin count rounded up to ``BIN_BUCKET`` (at least one bucket).
+
+    Args:
+        size: Bins.
+
+    Returns:
+        The padded bin count.
+    """
     return max(1, -(-int(size) // BIN_BUCKET)) * BIN_BUCKET
 
 
 def padded_bins(tb: TransferBins, size: int) -> TransferBins:
-    """``tb`` with bins that count nothing appended up to ``size`` (bins axis -2)."""
+    """``tb`` with bins that count nothing appended.
+
+    Args:
+        tb: Bins, (..., B, n) each field.
+        size: Bins wanted, >= B.
+
+    Returns:
+        Bins, (..., size, n) each field.
+    """
 
     def pad(a):
         a = np.asarray(a, float)
@@ -102,7 +125,14 @@ def padded_bins(tb: TransferBins, size: int) -> TransferBins:
 
 
 def stack_bins(parts: list[TransferBins]) -> TransferBins:
-    """One recording's bins each -> stacked (W, B, n), padded to the largest's bucket."""
+    """Stack the bins of several recordings, padded to the largest's bucket.
+
+    Args:
+        parts: One recording's bins each (W of them), fields (B_w, n).
+
+    Returns:
+        Bins, each field (W, B, n).
+    """
     size = bucket(max((p.size for p in parts), default=0))
     padded = [padded_bins(p, size) for p in parts]
     return TransferBins(*(np.stack(a) for a in zip(*padded, strict=True)))
@@ -158,9 +188,17 @@ def _binned(
 def backward_acceleration(
     t: np.ndarray, dq: np.ndarray, at: np.ndarray | None = None
 ) -> np.ndarray:
-    """(R, n) rad/s^2: each sample's velocity ``dq`` (R, n) rad/s minus the one before, over
-    the time between them (``t`` (R,) s); 0 at the first sample. ``at``: only the samples
-    of these indices (default all)."""
+    """Each sample's velocity minus the one before, over the time between them; 0 at the
+    first sample.
+
+    Args:
+        t: Sample times, (R,) s.
+        dq: Joint velocities, (R, n) rad/s.
+        at: Only the samples of these indices, (m,); None: all.
+
+    Returns:
+        (m, n) rad/s^2 ((R, n) for all samples).
+    """
     at = np.arange(len(t)) if at is None else np.asarray(at)
     ddq = np.zeros((at.size, np.shape(dq)[1]))
     later = at > 0
@@ -177,8 +215,19 @@ def transfer_bins(
     min_speed: float = MIN_SPEED,
     width: float = BIN_ANGLE,
 ) -> TransferBins:
-    """The transfer bins of ``rec`` (see the module docstring); none when it has no transfer
-    samples (a recording of sweeps alone)."""
+    """The transfer bins of ``rec`` (see the module docstring).
+
+    Args:
+        rec: The recording.
+        fraction: ``STEADY_FRACTION``, the cruise's speed tolerance.
+        settle: s left out at each leg's cruise start.
+        trim: s left out at its end.
+        min_speed: rad/s, the least speed of a joint counted in a bin.
+        width: rad of the lead joint's travel per bin.
+
+    Returns:
+        Its bins, fields (B, n); none when it has no transfer samples (sweeps alone).
+    """
     parts = []
     for leg in _legs(rec.joint < 0, rec.dq):
         dq = rec.dq[leg]
@@ -253,11 +302,23 @@ def transfer_plan(
     min_speed: float = MIN_SPEED,
     width: float = BIN_ANGLE,
 ) -> TransferPlan:
-    """The ``TransferPlan`` of R recorded samples at ``t`` (R,) s, labelled ``joint`` (R,) as a
-    ``Recording`` (-1: no sweep), whose commanded pose is ``q_cmd`` (R, n) rad and commanded
-    velocity ``dq_cmd`` (R, n) rad/s: a leg's cruise is a run of samples outside sweeps at one
-    nonzero commanded velocity (within ``steady.CRUISE_TOLERANCE`` of its largest
-    component), less ``settle`` s at its start and ``trim`` at its end."""
+    """The ``TransferPlan`` of R recorded samples: a leg's cruise is a run of samples
+    outside sweeps at one nonzero commanded velocity (within ``steady.CRUISE_TOLERANCE`` of
+    its largest component), less ``settle`` at its start and ``trim`` at its end.
+
+    Args:
+        t: Sample times, (R,) s.
+        q_cmd: Commanded poses, (R, n) rad.
+        dq_cmd: Commanded velocities, (R, n) rad/s.
+        joint: Each sample's sweep label as a ``Recording``'s, (R,) int (-1: no sweep).
+        settle: s left out at each cruise's start.
+        trim: s left out at its end.
+        min_speed: rad/s, the least commanded speed of a joint used in a bin.
+        width: rad of the lead joint's commanded travel per bin.
+
+    Returns:
+        The plan (host arrays).
+    """
     t, q_cmd, dq_cmd = (np.asarray(a, float) for a in (t, q_cmd, dq_cmd))
     R, n = q_cmd.shape
     top = np.abs(dq_cmd).max(axis=1)
@@ -305,7 +366,15 @@ class TransferSums(NamedTuple):
 
 
 def transfer_init(bins: int, n: int) -> TransferSums:
-    """Zero ``TransferSums`` of ``bins`` bins of n joints (host arrays, float64)."""
+    """Zero sums.
+
+    Args:
+        bins: Bins, B.
+        n: Joints.
+
+    Returns:
+        ``TransferSums`` of zeros (host arrays, float64).
+    """
     z = [np.zeros((bins, n)) for _ in range(5)]
     return TransferSums(*z, np.zeros(bins), np.zeros(n))
 
@@ -320,11 +389,25 @@ def transfer_add(
     fraction: float = STEADY_FRACTION,
     current_lag: float = 0.0,
 ) -> TransferSums:
-    """``sums`` with one sample of one world added (pure, jit- and vmap-able): ``row`` the
-    sample's ``TransferPlan.rows()`` entries, q (n,) rad, dq (n,) rad/s, current (n,) A;
-    ``valid`` False adds nothing, nor does a sample with a joint off its commanded velocity by
-    more than (1 - ``fraction``) of the lead joint's cruise speed (ringing, stick-slip). The
-    acceleration is ``backward_acceleration``'s, from ``sums.last``."""
+    """``sums`` with one sample of one world added (pure, jit- and vmap-able). A sample with
+    a joint off its commanded velocity by more than (1 - ``fraction``) of the lead joint's
+    cruise speed adds nothing (ringing, stick-slip). The acceleration is
+    ``backward_acceleration``'s, from ``sums.last``.
+
+    Args:
+        sums: The sums so far.
+        row: The sample's ``TransferPlan.rows()`` entries: bin (), velocity (n,) rad/s,
+            cruise () rad/s, rate () 1/s.
+        q: Joint angles, (n,) rad.
+        dq: Joint velocities, (n,) rad/s.
+        current: Motor currents, (n,) A.
+        valid: () bool; False adds nothing.
+        fraction: ``STEADY_FRACTION``.
+        current_lag: s, the current flowed at q - current_lag dq.
+
+    Returns:
+        The new sums.
+    """
     at, velocity, cruise, rate = row
     steady = valid & (at >= 0) & (cruise > 0)
     steady = steady & jnp.all(jnp.abs(dq - velocity) <= (1.0 - fraction) * cruise)
@@ -342,8 +425,16 @@ def transfer_add(
 
 
 def transfer_finish(sums: TransferSums, plan: TransferPlan) -> TransferBins:
-    """The ``TransferBins`` (host arrays; a leading world axis as ``sums`` has) of streamed
-    ``sums`` of the plan ``plan`` (its B bins), padded to ``bucket``."""
+    """The bins of streamed sums.
+
+    Args:
+        sums: The sums (a leading world axis W, or none).
+        plan: The plan they were streamed with (its B bins).
+
+    Returns:
+        ``TransferBins`` (host arrays), fields (..., bucket(B), n), a leading world axis as
+        ``sums`` has.
+    """
     B = plan.use.shape[0]
     count = np.asarray(sums.count)[..., :B, None]
     per = np.maximum(count, 1.0)
