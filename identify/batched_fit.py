@@ -391,7 +391,7 @@ def fit_batch(
     """
     w = int(moments.moments.shape[0])
     if w < 1 or moments.moments.ndim != 4:
-        raise InputError("moments must be stacked: moments (W, S, 6, 6) with W >= 1")
+        raise InputError("moments must be stacked: moments (W, S, D, D) with W >= 1")
     rows = w if batch is None else max(1, min(int(batch), w))
     padded, b, size, place = _batch_input(moments, transfers, rows, mesh)
     compile_seconds, seconds = 0.0, 0.0
