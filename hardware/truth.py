@@ -34,12 +34,12 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.errors import InputError, ModelError
 from jaxcomp.robot import Robot
 from jaxcomp.robot_params import (
     DEFAULT_CURRENT_LIMIT,
     RobotParams,
-    _vector,
     arm_joint_indices,
     arm_joint_names,
     current_limits,
@@ -198,13 +198,13 @@ class TrueRobot:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        self.current_noise = float(self.current_noise)
-        if not np.isfinite(self.current_noise) or self.current_noise < 0:
-            raise InputError(f"current_noise must be >= 0 A, got {self.current_noise}")
+        self.current_noise = checks.number(
+            self.current_noise, "current_noise", nonneg=True, unit="A"
+        )
         if self.viscous is not None:
-            self.viscous = _vector(self.viscous, "viscous", self.params.n)
-            if np.any(self.viscous < 0):
-                raise InputError("viscous friction must be >= 0 N m s/rad")
+            self.viscous = checks.array(
+                self.viscous, "viscous friction", n=self.params.n, nonneg=True, unit="N m s/rad"
+            )
 
     @property
     def ratio(self) -> np.ndarray:

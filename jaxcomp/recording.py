@@ -40,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.constants import STANDARD_GRAVITY
 from jaxcomp.errors import InputError, JaxcompError, ModelError
 from jaxcomp.files import atomic_output, reading, writing
@@ -190,27 +191,12 @@ def _numeric(data: Mapping, name: str, shape: tuple, kind: str = "float") -> np.
         raise InputError(f"recording field {name!r} is missing") from None
     if arr.dtype.kind not in "biuf":
         raise InputError(f"recording field {name!r} must be numeric, got dtype {arr.dtype}")
-    want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
-    if arr.ndim != len(shape) or any(
-        s is not None and a != s for a, s in zip(arr.shape, shape, strict=False)
-    ):
-        raise InputError(f"recording field {name!r} must have shape {want}, got {arr.shape}")
-    if kind == "int":
-        if arr.dtype.kind == "f":
-            if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
-                raise InputError(f"recording field {name!r} must hold integers")
-        return arr.astype(np.int64, copy=False)
-    arr = arr.astype(np.float64, copy=False)
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        if arr.ndim == 0:
-            raise InputError(f"recording field {name!r} is {arr.item()}, not a finite number")
-        first = np.argwhere(bad)[0].tolist()
-        raise InputError(
-            f"recording field {name!r} has {int(bad.sum())} NaN/inf value(s), first at index "
-            f"{first if len(first) > 1 else first[0]}"
-        )
-    return arr
+    if kind == "float":
+        return checks.array(arr, f"recording field {name!r}", shape=shape)  # float64
+    if arr.dtype.kind == "f" and not np.all(np.isfinite(arr) & (arr == np.round(arr))):
+        raise InputError(f"recording field {name!r} must hold integers")
+    checks.array(arr, f"recording field {name!r}", shape=shape)  # the shape
+    return arr.astype(np.int64, copy=False)
 
 
 def _degrees_hint(name: str, arr: np.ndarray, limit: float, unit: str) -> None:

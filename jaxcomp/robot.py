@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from jaxcomp import dynamics, poses
+from jaxcomp import checks, dynamics, poses
 from jaxcomp.errors import InputError, ModelError
 from jaxcomp.kinematic_tree import KinematicTree, tree_from_mujoco
 from jaxcomp.models import BUILTIN
@@ -33,17 +33,6 @@ DEFAULT_POSES = {
     "rest": "rest_pose",
     "zero": "zero_pose",
 }
-
-
-def _floats(value: Any, what: str, expected: str) -> np.ndarray:
-    """``value`` as a float array, or InputError naming ``what`` and the ``expected`` shape
-    and unit (strings, dicts and other non-numbers)."""
-    try:
-        return np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(
-            f"{what} must be an array of numbers of shape {expected}, got {value!r:.60}"
-        ) from None
 
 
 def builtin_models() -> list[str]:
@@ -460,19 +449,16 @@ class Robot:
         Raises:
             InputError: not numbers, a shape other than (nv,), or NaN or inf.
         """
-        if isinstance(q, jax.core.Tracer):
-            arr = q
-        else:
-            arr = _floats(q, what, f"({self.nv},) rad or m")
-        if arr.shape != (self.nv,):
-            raise InputError(
-                f"{what} must have shape ({self.nv},) for {self.name} "
-                f"(joints {', '.join(self.joint_names)}), got shape {tuple(arr.shape)}"
+        if not isinstance(q, jax.core.Tracer):
+            q = checks.array(
+                q, what, n=self.nv, labels=self.joint_names, kind="joint(s)", unit="rad or m"
             )
-        if not isinstance(arr, jax.core.Tracer) and not np.all(np.isfinite(arr)):
-            bad = [self.joint_names[i] for i in np.flatnonzero(~np.isfinite(arr))]
-            raise InputError(f"{what} contains NaN or inf at joint(s) {', '.join(bad)}")
-        return jnp.asarray(arr)
+        elif q.shape != (self.nv,):
+            raise InputError(
+                f"{what} must have shape ({self.nv},) in rad or m for joint(s) "
+                f"{', '.join(self.joint_names)}, got shape {tuple(q.shape)}"
+            )
+        return jnp.asarray(q)
 
     @cached_property
     def _device_defaults(self) -> tuple[InertialParams, jax.Array]:
@@ -493,10 +479,7 @@ class Robot:
         """
         if gravity is None:
             return self._device_defaults[1]
-        g = _floats(gravity, "gravity", "(3,) m/s^2")
-        if g.shape != (3,) or not np.all(np.isfinite(g)):
-            raise InputError(f"gravity must be a finite vector of shape (3,) m/s^2, got {g!r}")
-        return jnp.asarray(g)
+        return jnp.asarray(checks.array(gravity, "gravity", n=3, unit="m/s^2"))
 
     def check_params(self, params: InertialParams | None) -> InertialParams:
         """``params`` (None: the nominal ones) or InputError: each field of its shape, finite,
@@ -524,16 +507,14 @@ class Robot:
                 )
             if isinstance(value, jax.core.Tracer):
                 continue
-            arr = _floats(value, f"params.{field}", f"{shape} {units[field]}")
-            finite = np.isfinite(arr.reshape(nb, -1)).all(axis=1)
-            if not finite.all():
-                raise InputError(
-                    f"params.{field} contains NaN or inf for link(s) "
-                    f"{', '.join(self.link_names[i] for i in np.flatnonzero(~finite))}"
-                )
-            if field == "mass" and (arr < 0).any():
-                bad = [f"{self.link_names[i]} ({arr[i]:g} kg)" for i in np.flatnonzero(arr < 0)]
-                raise InputError(f"params.mass must be >= 0 kg; negative for {', '.join(bad)}")
+            checks.array(
+                value,
+                f"params.{field}",
+                shape=shape,
+                labels=self.link_names,
+                unit=units[field],
+                nonneg=field == "mass",
+            )
         return params
 
     # ----------------------------------------------------------------- dynamics

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.errors import InputError
 from jaxcomp.params import InertialParams
 from jaxcomp.reduction import BASE_JOINTS
@@ -74,19 +75,6 @@ def arm_joint_names(robot: Robot) -> tuple[str, ...]:
     return tuple(robot.joint_names[i] for i in arm_joint_indices(robot))
 
 
-def _vector(value: Any, name: str, n: int | None = None) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a list of numbers, got {value!r}") from None
-    if arr.ndim != 1 or (n is not None and arr.shape[0] != n):
-        want = f"({n},)" if n is not None else "a 1-D list"
-        raise InputError(f"{name} must have shape {want}, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise InputError(f"{name} contains NaN or inf at index {np.flatnonzero(~np.isfinite(arr))}")
-    return arr
-
-
 @dataclass
 class RobotParams:
     """Per-joint current/torque ratio and friction loss, per-link COM offsets.
@@ -119,11 +107,11 @@ class RobotParams:
     def __post_init__(self) -> None:
         if not isinstance(self.model, str) or not self.model:
             raise InputError(f"model must be a non-empty string, got {self.model!r}")
-        self.ratio = _vector(self.ratio, "ratio")
+        self.ratio = checks.array(self.ratio, "ratio", unit="A/(N m)")
         n = self.ratio.shape[0]
         if n == 0:
             raise InputError("ratio is empty: the params need one ratio per joint")
-        self.friction = _vector(self.friction, "friction")
+        self.friction = checks.array(self.friction, "friction", unit="A")
         if self.friction.shape[0] != n:  # name the field that disagrees with the joints
             named = len(self.joints) if isinstance(self.joints, (list, tuple)) else 0
             odd = [f for f in ("ratio", "friction") if len(getattr(self, f)) != named]
@@ -143,17 +131,15 @@ class RobotParams:
         if not isinstance(self.com_offset, Mapping):
             raise InputError("com_offset must be a mapping {link name: [dx, dy, dz]} in m")
         self.com_offset = {
-            str(k): _vector(v, f"com_offset[{k!r}]", 3) for k, v in self.com_offset.items()
+            str(k): checks.array(v, f"com_offset[{k!r}]", n=3, unit="m")
+            for k, v in self.com_offset.items()
         }
         if self.phase_shift is not None:
-            self.phase_shift = _vector(self.phase_shift, "phase_shift", n)
+            self.phase_shift = checks.array(self.phase_shift, "phase_shift", n=n, unit="rad")
         if self.std is not None and not isinstance(self.std, Mapping):
             raise InputError(f"std must be a mapping of standard errors or null, got {self.std!r}")
         if self.fit_seconds is not None:
-            fs = float(self.fit_seconds)
-            if not math.isfinite(fs) or fs < 0:
-                raise InputError(f"fit_seconds must be a finite number >= 0, got {fs}")
-            self.fit_seconds = fs
+            self.fit_seconds = checks.number(self.fit_seconds, "fit_seconds", nonneg=True, unit="s")
         if self.diagnostics is not None and not isinstance(self.diagnostics, Mapping):
             raise InputError(f"diagnostics must be a mapping or null, got {self.diagnostics!r}")
         if not isinstance(self.method, str):
