@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
 from jaxcomp.robot_params import current_limits
@@ -40,53 +41,34 @@ TRACKING_PRESET = {
     "friction_band": 0.05,
     "nullspace_damping": 0.3,
 }
+#: Units of the ``BaseGains`` figures, each a number >= 0.
+_BASE_UNITS = {
+    "gain": "1/s",
+    "max_speed": "m/s",
+    "deadband": "m",
+    "yaw_gain": "1/s",
+    "max_yaw_rate": "rad/s",
+    "yaw_deadband": "rad",
+}
 #: Named presets of ``ImpedanceGains`` (``ImpedanceGains.preset(name)``).
 IMPEDANCE_PRESETS = ("paper", "tracking")
 
 
-def _number(value, name: str, *, positive: bool = False, nonneg: bool = False) -> float:
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(x):
-        raise InputError(f"{name} must be finite, got {x}")
-    if positive and x <= 0:
-        raise InputError(f"{name} must be > 0, got {x}")
-    if nonneg and x < 0:
-        raise InputError(f"{name} must be >= 0, got {x}")
-    return x
-
-
 def _vec3(value, name: str) -> Vec3:
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a number or 3 numbers (x, y, z), got {value!r}") from None
-    if arr.ndim == 0:
-        arr = np.full(3, float(arr))
-    if arr.shape != (3,):
-        raise InputError(f"{name} must be a number or 3 numbers (x, y, z), got {value!r}")
-    if not np.all(np.isfinite(arr)) or np.any(arr < 0):
-        raise InputError(f"{name} must be finite and >= 0 per axis, got {arr.tolist()}")
+    """A gain per axis x, y, z (one number for all three), each finite and >= 0."""
+    arr = checks.array(value, name, n=3, labels=("x", "y", "z"), nonneg=True, scalar=True)
     return (float(arr[0]), float(arr[1]), float(arr[2]))
 
 
 def _per_joint(value, name: str, *, positive: bool = False, signed: bool = False) -> PerJoint:
-    if np.ndim(value) == 0:
-        if signed:
-            return _number(value, name)
-        return _number(value, name, positive=positive, nonneg=not positive)
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a number or a list of numbers, got {value!r}") from None
-    if arr.ndim != 1 or arr.size == 0:
-        raise InputError(f"{name} must be a number or a 1-D list of numbers, got {value!r}")
-    if not np.all(np.isfinite(arr)):
-        raise InputError(f"{name} contains NaN or inf: {arr.tolist()}")
-    if not signed and np.any(arr <= 0 if positive else arr < 0):
-        raise InputError(f"{name} must be {'> 0' if positive else '>= 0'}, got {arr.tolist()}")
+    """One number for every joint or a non-empty list of one per joint, finite, > 0
+    (``positive``), else >= 0 unless ``signed``."""
+    nonneg = not (positive or signed)
+    arr = checks.array(value, name, positive=positive, nonneg=nonneg, scalar=True)
+    if arr.ndim == 0:
+        return float(arr)
+    if arr.size == 0:
+        raise InputError(f"{name} must be a number or a non-empty list of numbers, got []")
     return tuple(float(x) for x in arr)
 
 
@@ -217,29 +199,29 @@ class ImpedanceGains:
             self, "nullspace_stiffness", _per_joint(self.nullspace_stiffness, "nullspace_stiffness")
         )
         set_(self, "nullspace_damping", _per_joint(self.nullspace_damping, "nullspace_damping"))
-        set_(self, "error_clip", _number(self.error_clip, "error_clip (m)", positive=True))
-        set_(self, "deadband", _number(self.deadband, "deadband (m)", nonneg=True))
+        set_(self, "error_clip", checks.number(self.error_clip, "error_clip (m)", positive=True))
+        set_(self, "deadband", checks.number(self.deadband, "deadband (m)", nonneg=True))
         if self.deadband >= self.error_clip:
             raise InputError(
                 f"deadband ({self.deadband} m) must be smaller than error_clip "
                 f"({self.error_clip} m)"
             )
-        t = _number(self.friction_threshold, "friction_threshold (rad/s)", positive=True)
+        t = checks.number(self.friction_threshold, "friction_threshold (rad/s)", positive=True)
         set_(self, "friction_threshold", t)
         if self.friction_direction not in FRICTION_DIRECTIONS:
             raise InputError(
                 f"friction_direction must be one of {', '.join(FRICTION_DIRECTIONS)}, got "
                 f"{self.friction_direction!r}"
             )
-        band = _number(self.friction_band, "friction_band (N m)", nonneg=True)
+        band = checks.number(self.friction_band, "friction_band (N m)", nonneg=True)
         set_(self, "friction_band", band)
         if self.current_limit is not None:
             lim = _per_joint(self.current_limit, "current_limit (A)", positive=True)
             set_(self, "current_limit", lim)
         rate = _per_joint(self.current_rate_limit, "current_rate_limit (A/s)", positive=True)
         set_(self, "current_rate_limit", rate)
-        set_(self, "period", _number(self.period, "period (s)", positive=True))
-        damp = _number(self.singularity_damping, "singularity_damping (1/kg)", nonneg=True)
+        set_(self, "period", checks.number(self.period, "period (s)", positive=True))
+        damp = checks.number(self.singularity_damping, "singularity_damping (1/kg)", nonneg=True)
         set_(self, "singularity_damping", damp)
 
     @classmethod
@@ -355,9 +337,11 @@ class VelocityGains:
     def __post_init__(self) -> None:
         set_ = object.__setattr__
         set_(self, "gain", _vec3(self.gain, "gain"))
-        set_(self, "max_speed", _number(self.max_speed, "max_speed (m/s)", positive=True))
-        set_(self, "error_clip", _number(self.error_clip, "error_clip (m)", positive=True))
-        set_(self, "pinv_damping", _number(self.pinv_damping, "pinv_damping (m)", nonneg=True))
+        set_(self, "max_speed", checks.number(self.max_speed, "max_speed (m/s)", positive=True))
+        set_(self, "error_clip", checks.number(self.error_clip, "error_clip (m)", positive=True))
+        set_(
+            self, "pinv_damping", checks.number(self.pinv_damping, "pinv_damping (m)", nonneg=True)
+        )
         if self.posture is not None:
             set_(self, "posture", _per_joint(self.posture, "posture", signed=True))
             if np.ndim(self.posture) == 0:
@@ -416,12 +400,8 @@ class BaseGains:
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
-        set_(self, "gain", _number(self.gain, "gain (1/s)", nonneg=True))
-        set_(self, "max_speed", _number(self.max_speed, "max_speed (m/s)", nonneg=True))
-        set_(self, "deadband", _number(self.deadband, "deadband (m)", nonneg=True))
-        set_(self, "yaw_gain", _number(self.yaw_gain, "yaw_gain (1/s)", nonneg=True))
-        set_(self, "max_yaw_rate", _number(self.max_yaw_rate, "max_yaw_rate (rad/s)", nonneg=True))
-        set_(self, "yaw_deadband", _number(self.yaw_deadband, "yaw_deadband (rad)", nonneg=True))
+        for name, unit in _BASE_UNITS.items():
+            set_(self, name, checks.number(getattr(self, name), f"{name} ({unit})", nonneg=True))
         if isinstance(self.yaw_joint, bool) or not isinstance(self.yaw_joint, (int, np.integer)):
             raise InputError(f"yaw_joint must be a joint index, got {self.yaw_joint!r}")
         if self.yaw_joint < 0:

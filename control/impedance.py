@@ -57,14 +57,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcomp import dynamics
+from jaxcomp import checks, dynamics
 from jaxcomp.control.external_force import external_force
 from jaxcomp.control.gains import ImpedanceGains, JointGains
 from jaxcomp.control.impedance_io import (
     LIVE_SIZE,
     Diagnostics,
-    check_joint_vector,
-    check_vector3,
     live_gains,
     pack_diagnostics,
     packed_size,
@@ -380,33 +378,33 @@ class ImpedanceController(ImpedanceLaw):
         Raises:
             InputError: naming a bad input.
         """
-        n, r = self.n, self.robot
+        n, joints = self.n, self.robot.joint_names
+        zeros = np.zeros(3)
         args = [
-            check_joint_vector(q, n, "q (rad)", r),
-            check_joint_vector(dq, n, "dq (rad/s)", r),
-            check_vector3(target_pos, "target_pos", "m"),
-            np.zeros(3) if target_vel is None else check_vector3(target_vel, "target_vel", "m/s"),
-            np.zeros(3) if target_acc is None else check_vector3(target_acc, "target_acc", "m/s^2"),
+            checks.array(q, "q (rad)", n=n, labels=joints),
+            checks.array(dq, "dq (rad/s)", n=n, labels=joints),
+            checks.array(target_pos, "target_pos", n=3, unit="m"),
+            zeros
+            if target_vel is None
+            else checks.array(target_vel, "target_vel", n=3, unit="m/s"),
+            zeros
+            if target_acc is None
+            else checks.array(target_acc, "target_acc", n=3, unit="m/s^2"),
             np.zeros(n)
             if prev_current is None
-            else check_joint_vector(prev_current, n, "prev_current (A)", r),
+            else checks.array(prev_current, "prev_current (A)", n=n, labels=joints),
         ]
         if self.gains.orientation:
             if target_rot is None:
                 raise InputError("orientation gains are set: target_rot (3, 3) is needed")
-            rot = np.asarray(target_rot, dtype=float)
-            if rot.shape != (3, 3) or not np.all(np.isfinite(rot)):
-                raise InputError(f"target_rot must be a finite (3, 3) rotation matrix, got {rot}")
-            args.append(rot)
+            args.append(checks.array(target_rot, "target_rot (rotation matrix)", shape=(3, 3)))
         if current is not None or live is not None:
             if not self.gains.orientation:
                 args.append(None)
             if current is not None:
-                current = check_joint_vector(current, n, "current (A)", r)
+                current = checks.array(current, "current (A)", n=n, labels=joints)
             if live is not None:
-                live = np.asarray(live, dtype=float)
-                if live.shape != (LIVE_SIZE,) or not np.all(np.isfinite(live)):
-                    raise InputError(f"live must be {LIVE_SIZE} finite numbers (live_gains)")
+                live = checks.array(live, "live (live_gains)", n=LIVE_SIZE)
             args += [current, live]
         return tuple(None if a is None else jnp.asarray(a) for a in args)
 

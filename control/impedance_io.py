@@ -1,5 +1,5 @@
-"""The impedance step's inputs and outputs: input checks, the packed input, the live gains
-and the diagnostics.
+"""The impedance step's inputs and outputs: the packed input, the live gains and the
+diagnostics.
 
 The 1 kHz loop hands the controller one numpy vector (``packed_size``): q rad | dq rad/s |
 previous command A | target pos m | vel m/s | acc m/s^2 (arm base frame) | measured current A
@@ -7,8 +7,7 @@ previous command A | target pos m | vel m/s | acc m/s^2 (arm base frame) | measu
 The live gains (``live_gains``: K_d N/m, D_d N s/m, friction compensation on 1 / off 0) are an
 input of the step, so that a running loop changes them without recompiling. The step answers
 its command and one ``Diagnostics`` array (``pack_diagnostics``; the external force estimate
-at ``estimate_slice``). ``check_joint_vector`` and ``check_vector3`` validate the inputs of
-interactive calls (``ImpedanceController.check_state``, the velocity controller's too).
+at ``estimate_slice``).
 """
 
 from __future__ import annotations
@@ -18,61 +17,6 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from jaxcomp.errors import InputError
-from jaxcomp.robot import Robot
-
-# ----------------------------------------------------------------------------- input checks
-
-
-def check_joint_vector(x, n: int, name: str, robot: Robot) -> np.ndarray:
-    """``x`` as a finite float array.
-
-    Args:
-        x: a joint vector (n,) (rad, rad/s or A: named in ``name``).
-        n: joints.
-        name: the input's name and unit, for the error.
-        robot: its joints' names.
-
-    Returns:
-        (n,) float array.
-
-    Raises:
-        InputError: another shape, NaN or inf (naming the input and the joints).
-    """
-    arr = np.asarray(x, dtype=float)
-    if arr.shape != (n,):
-        raise InputError(
-            f"{name} must have shape ({n},) for {robot.name} "
-            f"(joints {', '.join(robot.joint_names)}), got shape {arr.shape}"
-        )
-    if not np.all(np.isfinite(arr)):
-        bad = [robot.joint_names[i] for i in np.flatnonzero(~np.isfinite(arr))]
-        raise InputError(f"{name} contains NaN or inf at joint(s) {', '.join(bad)}")
-    return arr
-
-
-def check_vector3(x, name: str, unit: str) -> np.ndarray:
-    """``x`` as a finite float array.
-
-    Args:
-        x: a Cartesian vector (3,), arm base frame.
-        name: the input's name.
-        unit: its unit.
-
-    Returns:
-        (3,) float array.
-
-    Raises:
-        InputError: another shape, NaN or inf (naming the input).
-    """
-    arr = np.asarray(x, dtype=float)
-    if arr.shape != (3,):
-        raise InputError(f"{name} must have shape (3,) (x, y, z in {unit}), got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise InputError(f"{name} contains NaN or inf: {arr.tolist()}")
-    return arr
-
 
 # ----------------------------------------------------------------------------- packed input
 
@@ -295,8 +239,6 @@ __all__ = [
     "LIVE_SIZE",
     "Diagnostics",
     "PackedState",
-    "check_joint_vector",
-    "check_vector3",
     "estimate_slice",
     "live_gains",
     "pack_diagnostics",

@@ -37,11 +37,11 @@ In both cases the current rate limit scales with each joint's current limit (200
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.control.gains import IMPEDANCE_PRESETS, ImpedanceGains, check_fixed_base
 from jaxcomp.errors import InputError, ModelError
@@ -267,11 +267,8 @@ def check_live_gains(robot: Robot, stiffness, damping) -> tuple[float, float]:
         ("stiffness", stiffness, "N/m", limits.stiffness),
         ("damping", damping, "N s/m", limits.damping),
     ):
-        try:
-            x = float(value)
-        except (TypeError, ValueError):
-            raise InputError(f"{name} must be a number of {unit}, got {value!r}") from None
-        if not (math.isfinite(x) and 0.0 <= x <= most):
+        x = checks.number(value, name, unit=unit)
+        if not 0.0 <= x <= most:
             raise InputError(
                 f"{name} {x:g} {unit} is outside the safe range 0-{most:.4g} {unit} for "
                 f"{robot.name} ({_WHY[name]})"

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.control.base_follower import BaseFollower
 from jaxcomp.control.cycle import Cycle
@@ -132,8 +133,7 @@ def set_up_run(
         model = mobile_model_name(robot) if base is not None else robot.reference
     if mount is None:
         mount = ArmMount.from_model(model) if base is not None else ArmMount()
-    if not (math.isfinite(max_error_time) and max_error_time > 0):
-        raise InputError(f"max_error_time must be a positive number of s, got {max_error_time}")
+    checks.number(max_error_time, "max_error_time", positive=True, unit="s")
     if watchdog is None:
         if max_error is None:
             max_error = default_max_error(mode, controller)
@@ -232,10 +232,7 @@ def _duration(duration: float | None, traj: Trajectory, default: float) -> float
     """s of control: ``duration``, else the trajectory's own, else ``default``; checked."""
     if duration is None:
         duration = traj.duration if 0 < traj.duration < math.inf else default
-    duration = float(duration)
-    if not (math.isfinite(duration) and duration > 0):
-        raise InputError(f"duration must be a positive number of s, got {duration}")
-    return duration
+    return checks.number(duration, "duration", positive=True, unit="s")
 
 
 def _check_reach(

@@ -34,6 +34,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.errors import InputError
 
 DEFAULT_ACCEL = 0.25  # m/s^2, ramps of every speed profile
@@ -65,10 +66,8 @@ class Profile:
     _total: float = field(init=False, repr=False, compare=False, default=0.0)
 
     def __post_init__(self) -> None:
-        for name in ("speed", "accel"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise InputError(f"profile {name} must be a positive number, got {value}")
+        checks.number(self.speed, "profile speed", positive=True, unit="m/s")
+        checks.number(self.accel, "profile accel", positive=True, unit="m/s^2")
         if not (self.length >= 0):
             raise InputError(f"profile length must be >= 0 m, got {self.length}")
         t_acc = self.speed / self.accel
@@ -487,8 +486,12 @@ class TrajectorySpec:
             InputError: ``start`` or ``arm_origin`` not a finite (3,) vector, or an option
                 the kind refuses.
         """
-        start = _vec(start, "start")
-        origin = np.zeros(3) if arm_origin is None else _vec(arm_origin, "arm_origin")
+        start = checks.array(start, "start", n=3, unit="m")
+        origin = (
+            np.zeros(3)
+            if arm_origin is None
+            else checks.array(arm_origin, "arm_origin", n=3, unit="m")
+        )
         rot = np.eye(3) if arm_rotation is None else np.asarray(arm_rotation, dtype=float)
         builder = getattr(self, "_" + self.kind.replace("-", "_"))
         return builder(start, origin, rot)
@@ -581,13 +584,6 @@ class TrajectorySpec:
             f"after a {lead.length:.3f} m lead-in"
         )
         return Piecewise(tuple(pieces), description=desc)
-
-
-def _vec(value, name: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
-    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
-        raise InputError(f"{name} must be a finite (3,) vector in m, got {value!r}")
-    return arr
 
 
 def _horizontal(d, fallback=None) -> np.ndarray:

@@ -18,11 +18,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcomp import dynamics
+from jaxcomp import checks, dynamics
 from jaxcomp.control.gains import VelocityGains
 from jaxcomp.control.impedance_io import (
-    check_joint_vector,
-    check_vector3,
     packed_size,
     unpack_state,
 )
@@ -145,12 +143,12 @@ class VelocityController:
             InputError: naming a bad input.
         """
         return (
-            jnp.asarray(check_joint_vector(q, self.n, "q (rad)", self.robot)),
-            jnp.asarray(check_vector3(target_pos, "target_pos", "m")),
+            jnp.asarray(checks.array(q, "q (rad)", n=self.n, labels=self.robot.joint_names)),
+            jnp.asarray(checks.array(target_pos, "target_pos", n=3, unit="m")),
             jnp.asarray(
                 np.zeros(3)
                 if target_vel is None
-                else check_vector3(target_vel, "target_vel", "m/s")
+                else checks.array(target_vel, "target_vel", n=3, unit="m/s")
             ),
         )
 
