@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.errors import InputError
 
 
@@ -75,10 +76,8 @@ class Rope:
     stiffness: float
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.free_length) and self.free_length >= 0):
-            raise InputError(f"rope free_length must be >= 0 m, got {self.free_length}")
-        if not (np.isfinite(self.stiffness) and self.stiffness >= 0):
-            raise InputError(f"rope stiffness must be >= 0 N/m, got {self.stiffness}")
+        checks.number(self.free_length, "rope free_length", nonneg=True, unit="m")
+        checks.number(self.stiffness, "rope stiffness", nonneg=True, unit="N/m")
 
     def force(self, point: np.ndarray) -> np.ndarray:
         """The rope's pull on the end effector: zero while slack.
@@ -143,11 +142,9 @@ class Interaction:
         Raises:
             InputError: a non-finite start, a duration <= 0 or not finite, a bad vector.
         """
-        if not (np.isfinite(start) and np.isfinite(duration) and duration > 0):
-            raise InputError(
-                f"push needs a finite start and duration > 0 s, got {start}, {duration}"
-            )
-        push = Push(float(start), float(duration), vec3(force, "force"), vec3(torque, "torque"))
+        start = checks.number(start, "push start", unit="s")
+        duration = checks.number(duration, "push duration", positive=True, unit="s")
+        push = Push(start, duration, vec3(force, "force"), vec3(torque, "torque"))
         self.pushes.append(push)
         self._update()
         return push

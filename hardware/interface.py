@@ -21,6 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError, JaxcompError
 from jaxcomp.hardware.mecanum import TwistLimits
@@ -160,15 +161,11 @@ class ArmLimits:
 
 
 def _array(value, name: str, n: int, joints: Sequence[str]) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
-    if arr.shape != (n,):
-        raise InputError(
-            f"{name} must have shape ({n},) (joints {', '.join(joints)}), got {arr.shape}"
-        )
-    if not np.isfinite(arr).all():
-        bad = [joints[i] for i in np.flatnonzero(~np.isfinite(arr))]
-        raise InputError(f"{name} contains NaN or inf at {', '.join(bad)}; nothing was sent")
-    return arr
+    """``value`` as a finite (n,) array, or the InputError of ``checks.array`` (nothing sent)."""
+    try:
+        return checks.array(value, name, n=n, labels=joints)
+    except InputError as err:
+        raise InputError(f"{err}; nothing was sent") from None
 
 
 def _check_range(arr, lo, hi, name: str, unit: str, joints: Sequence[str], use) -> None:
@@ -516,9 +513,9 @@ class Arm(abc.ABC):
             raise InputError(
                 f"speed must be in (0, {float(self.limits.velocity.min()):.3g}] rad/s, got {speed}"
             )
-        accel = speed / 0.1 if accel is None else float(accel)
-        if not (np.isfinite(accel) and accel > 0):
-            raise InputError(f"accel must be a positive number of rad/s^2, got {accel}")
+        accel = checks.number(
+            speed / 0.1 if accel is None else accel, "accel", positive=True, unit="rad/s^2"
+        )
         self.set_modes(ControlMode.POSITION)
         path = move_path(self._position.copy(), target, speed, accel, settle, self.dt)
         state = self.read()

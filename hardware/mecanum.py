@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.errors import InputError
 
 if TYPE_CHECKING:
@@ -125,13 +126,7 @@ class TwistLimits:
         Raises:
             InputError: not shape (3,), NaN or inf, or beyond ``velocity``.
         """
-        arr = np.asarray(twist, dtype=float)
-        if arr.shape != (3,):
-            raise InputError(
-                f"twist must have shape (3,) (vx m/s, vy m/s, wz rad/s), got {arr.shape}"
-            )
-        if not np.all(np.isfinite(arr)):
-            raise InputError(f"twist contains NaN or inf: {arr}")
+        arr = checks.array(twist, "twist (m/s, m/s, rad/s)", n=3, labels=("vx", "vy", "wz"))
         over = np.abs(arr) > np.asarray(self.velocity) + 1e-9
         if over.any():
             names = [n for n, o in zip(("vx", "vy", "wz"), over, strict=True) if o]

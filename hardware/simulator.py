@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.constants import CONTROL_PERIOD, STANDARD_GRAVITY
 from jaxcomp.errors import InputError, ModelError
 from jaxcomp.hardware.interaction import Interaction, Push, Rope, vec3
@@ -232,9 +233,7 @@ class Simulator:
             pose = self.robot.idle_pose[self._qadr]
         if isinstance(pose, str):
             pose = self.robot.pose(pose)[self._qadr]
-        q = np.asarray(pose, dtype=float)
-        if q.shape != (self.n,) or not np.isfinite(q).all():
-            raise InputError(f"initial_pose must be a finite ({self.n},) array or a pose name")
+        q = checks.array(pose, "initial_pose (or a pose name)", n=self.n, unit="rad")
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[self._qadr] = q
         mujoco.mj_forward(self.model, self.data)

@@ -30,6 +30,7 @@ import pinocchio as pin
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from jaxcomp import checks
 from jaxcomp.errors import InputError
 from jaxcomp.identify.bins import BIN_WIDTH, SweepBins, bin_sweeps
 from jaxcomp.params import InertialParams
@@ -101,18 +102,13 @@ def phase_fit(theta, c, weights=None) -> tuple[float, float]:
     Raises:
         InputError: shapes that differ, fewer than 2 finite samples, or bad weights.
     """
-    theta = np.asarray(theta, dtype=float)
-    c = np.asarray(c, dtype=float)
-    w = np.ones_like(theta) if weights is None else np.asarray(weights, dtype=float)
-    if theta.ndim != 1 or c.shape != theta.shape or w.shape != theta.shape:
-        raise InputError(
-            f"phase_fit needs theta, c and weights of one shape (N,), got {theta.shape}, "
-            f"{c.shape}, {w.shape}"
-        )
-    if theta.size < 2 or not (np.all(np.isfinite(theta)) and np.all(np.isfinite(c))):
+    theta = checks.array(theta, "phase_fit theta", unit="rad")
+    n = theta.shape[0]
+    c = checks.array(c, "phase_fit c", n=n)
+    w = np.ones(n) if weights is None else weights
+    w = checks.array(w, "phase_fit weights", n=n, nonneg=True)
+    if n < 2:
         raise InputError("phase_fit needs at least 2 finite samples")
-    if not np.all(np.isfinite(w)) or np.any(w < 0):
-        raise InputError("phase_fit weights must be finite and >= 0")
     s, delta, _ = _phase_fit(theta, c, w)
     return s, delta
 

@@ -19,6 +19,7 @@ from functools import cached_property
 
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.errors import InputError
 from jaxcomp.params import gyration_radii
 from jaxcomp.robot import Robot, load_robot
@@ -129,9 +130,7 @@ class FitModel:
         """
         if length is None:
             return self
-        length = float(length)
-        if not (np.isfinite(length) and length > 0):
-            raise InputError(f"the COM prior must be a length > 0 m, got {length}")
+        length = checks.number(length, "the COM prior", positive=True, unit="m")
         return dataclasses.replace(self, com_prior=np.full(len(self.links), length))
 
 
@@ -171,9 +170,8 @@ def default_com_prior(robot: Robot, link_ids: np.ndarray) -> np.ndarray:
     """
     declared = robot.custom_numeric("jaxcomp_com_prior")
     if declared is not None:
-        value = float(np.asarray(declared).ravel()[0])
-        if not (np.isfinite(value) and value > 0):
-            raise InputError(f"{robot.name}: jaxcomp_com_prior must be a length > 0 m, got {value}")
+        first = np.asarray(declared).ravel()[0]
+        value = checks.number(first, f"{robot.name}: jaxcomp_com_prior", positive=True, unit="m")
         return np.full(len(link_ids), value)
     gyration = gyration_radii(robot.nominal_params())[link_ids]
     return np.maximum(PRIOR_COM_FRACTION * gyration, PRIOR_COM_MIN)

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.move_profile import trapezoid_duration
@@ -71,15 +72,10 @@ _SWEEP_KEYS = ("joint", "hold", "lower", "upper", "speed", "via")
 
 
 def _float(value: Any, name: str) -> float:
+    """``value`` as a finite float (``checks.number``), True and False refused."""
     if isinstance(value, bool):
         raise InputError(f"{name} must be a number, got {value!r}")
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(x):
-        raise InputError(f"{name} must be finite, got {x}")
-    return x
+    return checks.number(value, name)
 
 
 def _speed(value: Any, name: str) -> float:
@@ -91,14 +87,10 @@ def _speed(value: Any, name: str) -> float:
 
 
 def _pose(value: Any, name: str) -> np.ndarray:
-    try:
-        q = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a list of angles (rad), got {value!r}") from None
-    if q.ndim != 1 or q.size == 0:
+    """``value`` as a read-only copy, a finite non-empty pose (n,) rad."""
+    q = np.array(checks.array(value, name, unit="rad"))
+    if q.size == 0:
         raise InputError(f"{name} must be a pose (n,) in rad, got shape {q.shape}")
-    if not np.all(np.isfinite(q)):
-        raise InputError(f"{name} contains NaN or inf: {q.tolist()}")
     q.flags.writeable = False
     return q
 
@@ -503,10 +495,7 @@ def arm_pose(robot: Robot, pose: str | Sequence[float] | None = None) -> np.ndar
         pose = robot.idle_pose[arm]
     if isinstance(pose, str):
         return robot.pose(pose)[arm]
-    q = np.asarray(pose, float)
-    if q.shape != (len(arm),) or not np.all(np.isfinite(q)):
-        raise InputError(f"a pose must be a finite ({len(arm)},) array in rad, got {q.tolist()}")
-    return q
+    return checks.array(pose, "pose", n=len(arm), unit="rad")
 
 
 def plan_for_joints(

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from jaxcomp import dynamics
+from jaxcomp import checks, dynamics
 from jaxcomp.errors import InputError
 from jaxcomp.identify.plan import CalibrationPlan, arm_pose
 from jaxcomp.robot import Robot, load_robot
@@ -74,8 +74,9 @@ class PlanModel:
         self.effort_fraction = float(effort_fraction)
         self.floor = float(floor)
         tree = robot.tree
-        g = robot.default_gravity if gravity is None else np.asarray(gravity, float)
-        if g.shape != (3,) or not np.all(np.isfinite(g)) or not 1 < np.linalg.norm(g) < 30:
+        g = robot.default_gravity if gravity is None else gravity
+        g = checks.array(g, "gravity", n=3, unit="m/s^2")
+        if not 1 < np.linalg.norm(g) < 30:
             raise InputError(f"gravity must be (3,) m/s^2 with a norm near 9.81, got {g}")
         self.g = g
         idx = jnp.asarray(arm)

@@ -14,6 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.move_profile import move_path
 
@@ -58,9 +59,7 @@ def reference_trajectory(
     Raises:
         InputError: a bad start or limits, or a move's pose, speed, accel or settle.
     """
-    pos = np.asarray(start, dtype=float)
-    if pos.ndim != 1 or not np.isfinite(pos).all():
-        raise InputError(f"start must be a finite (n,) array of rad, got shape {pos.shape}")
+    pos = checks.array(start, "start", unit="rad")
     n = pos.shape[0]
     if limits is not None:
         limits = np.asarray(limits, dtype=float)
@@ -82,12 +81,9 @@ def reference_trajectory(
         top = math.inf if max_speed is None else float(max_speed)
         if not (math.isfinite(speed) and 0 < speed <= top):
             raise InputError(f"move {i}: speed must be in (0, {top:.3g}] rad/s, got {speed}")
-        accel = speed / 0.1 if mv.accel is None else float(mv.accel)
-        if not (math.isfinite(accel) and accel > 0):
-            raise InputError(f"move {i}: accel must be a positive number of rad/s^2")
-        settle = float(mv.settle)
-        if not (math.isfinite(settle) and settle >= 0):
-            raise InputError(f"move {i}: settle must be >= 0 s, got {settle}")
+        accel = speed / 0.1 if mv.accel is None else mv.accel
+        accel = checks.number(accel, f"move {i}: accel", positive=True, unit="rad/s^2")
+        settle = checks.number(mv.settle, f"move {i}: settle", nonneg=True, unit="s")
         path = move_path(pos, target, speed, accel, settle)
         if len(path):
             parts.append(path)

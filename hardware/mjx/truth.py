@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.mjx.model import end_effector_point
 from jaxcomp.hardware.truth import DEFAULT_COM_OFFSET, TrueRobot, model_current_noise
@@ -57,28 +58,25 @@ class BatchTruth:
         w, n = np.shape(self.ratio)[:2] if np.ndim(self.ratio) == 2 else (-1, -1)
         if w < 1 or n < 1:
             raise InputError(f"ratio must have shape (W, n), got {np.shape(self.ratio)}")
-        want = {
-            "ratio": (w, n),
-            "friction": (w, n),
-            "current_noise": (w,),
-            "viscous": (w, n),
-            "payload": (w,),
-            "gravity": (w, 3),
+        want = {  # shape, unit, sign
+            "ratio": ((w, n), "A/(N m)", "> 0"),
+            "friction": ((w, n), "A", ">= 0"),
+            "current_noise": ((w,), "A", ">= 0"),
+            "viscous": ((w, n), "N m s/rad", ">= 0"),
+            "payload": ((w,), "kg", ">= 0"),
+            "gravity": ((w, 3), "m/s^2", ""),
+            "com_offset": ((w, None, 3), "m", ""),
         }
-        for name, shape in want.items():
-            arr = np.asarray(getattr(self, name), dtype=float)
-            if arr.shape != shape or not np.isfinite(arr).all():
-                raise InputError(f"{name} must be a finite array of shape {shape}")
+        for name, (shape, unit, sign) in want.items():
+            arr = checks.array(
+                getattr(self, name),
+                name,
+                shape=shape,
+                unit=unit,
+                positive=sign == "> 0",
+                nonneg=sign == ">= 0",
+            )
             object.__setattr__(self, name, arr)
-        off = np.asarray(self.com_offset, dtype=float)
-        if off.ndim != 3 or off.shape[0] != w or off.shape[2] != 3 or not np.isfinite(off).all():
-            raise InputError(f"com_offset must be a finite (W={w}, nb, 3) array of m")
-        object.__setattr__(self, "com_offset", off)
-        for name in ("friction", "current_noise", "viscous", "payload"):
-            if (getattr(self, name) < 0).any():
-                raise InputError(f"{name} must be >= 0")
-        if (self.ratio <= 0).any():
-            raise InputError("ratio must be > 0 A/(N m)")
 
     @property
     def worlds(self) -> int:

@@ -6,6 +6,7 @@ import math
 
 import click
 
+from jaxcomp import checks
 from jaxcomp.cli.console_options import console_options
 from jaxcomp.cli.group import cli
 from jaxcomp.cli.model_options import model_options
@@ -370,12 +371,11 @@ def _control(
 
 def _check_run_options(duration: float | None, max_error: float | None, max_error_time: float):
     """InputError for a --duration, --max-error or --max-error-time out of range."""
-    if duration is not None and not (math.isfinite(duration) and duration > 0):
-        raise InputError(f"--duration must be a positive number of s, got {duration}")
+    if duration is not None:
+        checks.number(duration, "--duration", positive=True, unit="s")
     if max_error is not None and not max_error > 0:
         raise InputError(f"--max-error must be > 0 m (inf: never), got {max_error}")
-    if not (math.isfinite(max_error_time) and max_error_time > 0):
-        raise InputError(f"--max-error-time must be a positive number of s, got {max_error_time}")
+    checks.number(max_error_time, "--max-error-time", positive=True, unit="s")
 
 
 def _make_controller(law: str, preset: str, changes: dict, arm_robot, checked):

@@ -27,7 +27,6 @@ N, A, rad); positions in the world (= arm base) frame.
 """
 
 import dataclasses
-import math
 import platform
 import time
 from pathlib import Path
@@ -37,6 +36,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
+from jaxcomp import checks
 from jaxcomp.constants import CONTROL_PERIOD
 from jaxcomp.control import ImpedanceGains, impedance_gains
 from jaxcomp.control.trajectory import Trajectory
@@ -152,8 +152,7 @@ def _setup(settings: ControlSettings, robot: Robot | None) -> _Study:
     start, trajectory = trajectory_for(robot, passes)
     if duration is None:
         duration = trajectory.duration
-    if not (math.isfinite(duration) and duration > 0):
-        raise InputError(f"--duration must be > 0 s, got {duration}")
+    checks.number(duration, "--duration", positive=True, unit="s")
     steps = int(round((TRACK_START + duration) / CONTROL_PERIOD))
     windows = {"track": (TRACK_START, TRACK_START + duration + 1.0), "base": BASELINE,
                "push": HELD}  # fmt: skip
@@ -175,12 +174,9 @@ def _check(settings: ControlSettings) -> None:
         raise InputError(f"--worlds must be >= 1, got {worlds}")
     if passes < 1:
         raise InputError(f"--passes must be >= 1, got {passes}")
-    if not (math.isfinite(force) and force > 0):
-        raise InputError(f"--force must be > 0 N, got {force}")
+    checks.number(force, "--force", positive=True, unit="N")
     for name in ("params_error", "com_error", "noise"):
-        value = getattr(settings, name)
-        if not (math.isfinite(value) and value >= 0):
-            raise InputError(f"--{name.replace('_', '-')} must be >= 0, got {value}")
+        checks.number(getattr(settings, name), f"--{name.replace('_', '-')}", nonneg=True)
     if settings.params_error >= 1:
         raise InputError(f"--params-error must be < 1 (relative), got {settings.params_error}")
 

@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 
+from jaxcomp import checks
 from jaxcomp.errors import InputError
 from jaxcomp.hardware.mjx import BatchTruth
 from jaxcomp.hardware.truth import friction_loss_torque, model_current_noise, truth_centre
@@ -56,9 +57,7 @@ class TruthSpread:
         for name in ("type_spread", "com_offset", "noise", "viscous", "headroom"):
             if getattr(self, name) is None:
                 continue
-            v = float(getattr(self, name))
-            if not (math.isfinite(v) and v >= 0):
-                raise InputError(f"--{name.replace('_', '-')} must be a finite number >= 0")
+            checks.number(getattr(self, name), f"--{name.replace('_', '-')}", nonneg=True)
         if self.type_spread >= 1 or self.headroom >= 1:
             raise InputError("type spread and headroom must be < 1")
 
