@@ -2,8 +2,8 @@
 
 Each cycle the loop adds one row of t | q | dq | current | command | target | ee | base
 [| current_model | wrench | wrench_band] (``Recorder.add``, into a preallocated block); each full
-block of 1000 rows goes to the ``BlockWriter`` (a ``RecordingWriter`` that saves it as one part
-file) on a writer thread in real time (the loop never waits for the disk), inline in lock step.
+block of 1000 rows goes to the ``RecordingWriter`` (``append_block``: one part file) on a
+writer thread in real time (the loop never waits for the disk), inline in lock step.
 ``Recorder.close`` joins the parts into ``out_dir/recording.npz``.
 
 Fields: t s, q rad, dq rad/s, current A, ``command`` (n,) A (rad/s for the velocity
@@ -32,45 +32,12 @@ BLOCK = 1000
 FRAME_FIELDS = {"target": (3,), "ee": (3,), "base": (3,)}
 
 
-class BlockWriter(RecordingWriter):
-    """A ``RecordingWriter`` that takes whole blocks of samples (``append_block``) instead of
-    one ``append`` per sample (~20 us each: eight small array copies, then a flush that stacks
-    the per-sample rows again, holding the GIL for milliseconds). The blocks go into the
-    writer's field buffers as arrays, which its ``flush`` saves as they are; never mix with
-    ``append``."""
-
-    def append_block(self, t, q, dq, current, **extra) -> None:
-        """Add k samples.
-
-        Args:
-            t: (k,) s.
-            q: (k, n) rad.
-            dq: (k, n) rad/s.
-            current: (k, n) A.
-            **extra: the extra fields, (k, ...) each.
-        """
-        k = len(t)
-        buf = self._buf
-        buf["t"].extend(t.tolist())  # a list: the parent's flush tests it for emptiness
-        blocks = {"q": q, "dq": dq, "current": current, **extra}
-        blocks["joint"] = np.full(k, -1)
-        blocks["direction"] = np.zeros(k, np.int64)
-        for name, block in blocks.items():
-            old = buf[name]
-            block = np.ascontiguousarray(block)
-            buf[name] = block if isinstance(old, list) else np.concatenate([old, block])
-        self._count += k
-        self.last_t = float(t[-1])
-        if len(buf["t"]) >= self.flush_every:
-            self.flush()
-
-
 class Recorder:
     """Per-sample rows into preallocated blocks of ``block`` samples, each full block handed to
     the writer (see the module doc).
 
     Args:
-        writer: the run's ``BlockWriter``.
+        writer: the run's ``RecordingWriter`` (fed with ``append_block``).
         n: joints.
         block: samples per block.
         threaded: hand the blocks to a writer thread (real time), else write them inline.
@@ -81,7 +48,7 @@ class Recorder:
             last (a view; the monitor's sample).
     """
 
-    def __init__(self, writer: BlockWriter, n: int, block: int, threaded: bool, estimate: bool):
+    def __init__(self, writer: RecordingWriter, n: int, block: int, threaded: bool, estimate: bool):
         self.writer, self.n, self.block = writer, n, block
         widths = {"t": 1, "q": n, "dq": n, "current": n, "command": n}
         widths |= {"target": 3, "ee": 3, "base": 3}
@@ -206,7 +173,7 @@ def open_recorder(
     extra = {**FRAME_FIELDS, "command": (n,)}
     if estimate:
         extra |= {"current_model": (n,), "wrench": (3,), "wrench_band": (3,)}
-    writer = BlockWriter(
+    writer = RecordingWriter(
         out / RECORDING,
         model,
         n,
@@ -223,7 +190,6 @@ __all__ = [
     "FRAME_FIELDS",
     "RECORDING",
     "TIMING",
-    "BlockWriter",
     "Recorder",
     "open_recorder",
 ]
