@@ -12,6 +12,7 @@ is a few numpy slice assignments (microseconds): the loop never blocks on the pa
 
 from __future__ import annotations
 
+import mmap
 import os
 import tempfile
 from pathlib import Path
@@ -121,7 +122,9 @@ class FrameRing:
 
     def close(self) -> None:
         """Unmap; the writer's side also removes the file."""
-        self._mem._mmap.close() if getattr(self._mem, "_mmap", None) is not None else None
+        mapped = self._mem.base  # the memmap's mmap.mmap
+        if isinstance(mapped, mmap.mmap):
+            mapped.close()
         if self._owner:
             self.path.unlink(missing_ok=True)
 
