@@ -138,6 +138,7 @@ class Simulator:
         self._views()
         self._badr = m.jnt_dofadr[self.base_joints]
         self._bqadr = m.jnt_qposadr[self.base_joints]
+        self._bqadr.flags.writeable = False  # public, read-only
         self._base_views()
         self._ratio = self.truth.ratio.copy() if n else np.ones(0)
         limited = m.jnt_actfrclimited[self.arm_joints].astype(bool)
@@ -261,6 +262,12 @@ class Simulator:
         """(n,) int, read-only: each arm joint's address in ``data.qvel`` (MuJoCo's
         ``jnt_dofadr``); ``data.qvel[sim.arm_dofadr]`` are the arm's velocities, rad/s."""
         return self._dadr
+
+    @property
+    def base_qposadr(self) -> np.ndarray:
+        """(3,) int, read-only (empty without a base): the planar base joints' addresses in
+        ``data.qpos``; ``data.qpos[sim.base_qposadr]`` are the base's x m, y m, yaw rad."""
+        return self._bqadr
 
     @property
     def modes(self) -> tuple[ControlMode, ...]:

@@ -454,10 +454,10 @@ def test_arm_mount_matches_the_simulator():
     rng = np.random.default_rng(1)
     for _ in range(5):
         pose = rng.uniform([-2, -2, -np.pi], [2, 2, np.pi])
-        sim.data.qpos[sim._bqadr] = pose
-        sim.data.qpos[sim._qadr] = rng.uniform(-1, 1, 6)
+        sim.data.qpos[sim.base_qposadr] = pose
+        sim.data.qpos[sim.arm_qposadr] = rng.uniform(-1, 1, 6)
         mujoco.mj_forward(sim.model, sim.data)
-        ee_a = np.asarray(ARM.site_position(sim.data.qpos[sim._qadr], "end_effector"))
+        ee_a = np.asarray(ARM.site_position(sim.data.qpos[sim.arm_qposadr], "end_effector"))
         np.testing.assert_allclose(mount.arm_to_world(ee_a, pose), sim.ee_position(), atol=1e-12)
         np.testing.assert_allclose(mount.world_to_arm(sim.ee_position(), pose), ee_a, atol=1e-12)
     assert ArmMount.from_model(ARM).position.tolist() == [0.0, 0.0, 0.0]

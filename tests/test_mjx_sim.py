@@ -367,7 +367,7 @@ def test_closed_loop_refuses_bad_input():
         run(pushes=PushSchedule(np.full((2, 1), -0.1), np.ones((2, 1)), np.zeros((2, 1, 3))))
     with pytest.raises(InputError, match="policy must be a function"):
         run(policy=None)
-    assert not sim._compiled  # nothing was compiled for any of them
+    assert not sim.compiled_keys  # nothing was compiled for any of them
 
 
 # ----------------------------------------------------------------------------- slow
@@ -512,7 +512,7 @@ def test_light_joint_friction_solve_converges(tmp_path):
     truth = truth_rows(draw_truth(robot, 262, 0, TruthSpread()), [261])
     sim = MjxSimulator(robot)
     f = {k: jnp.asarray(v[0]) for k, v in sim.world_fields(truth).items()}
-    m = sim._mx.tree_replace({k: f[k] for k in WORLD_MODEL_FIELDS if k in f})
+    m = sim.mjx_model.tree_replace({k: f[k] for k in WORLD_MODEL_FIELDS if k in f})
     qpos = [-1.1885909612824683, -1.3925628773968488, -0.36986310476332523]
     qpos += [1.1796018047594437, 1.3229811692632665, -1.2083089309194148]
     qvel = [0.043674238818253996, 0.5317859851026709, 0.0020764718494438246]
@@ -522,7 +522,7 @@ def test_light_joint_friction_solve_converges(tmp_path):
     target = [-1.1887383698154108, -1.3880598926175611, -0.3692281280467291]
     target += [1.178732247465514, 1.3227243072141768, -1.207787412146084]
     with jax.enable_x64(True):
-        d = sim._d0.replace(
+        d = sim.mjx_data.replace(
             qpos=jnp.asarray(qpos),
             qvel=jnp.asarray(qvel),
             qacc_warmstart=jnp.asarray(warm),

@@ -326,6 +326,11 @@ class MjxSimulator:
             self._compiled[key] = build()
         return self._compiled[key]
 
+    @property
+    def compiled_keys(self) -> tuple[Hashable, ...]:
+        """The keys of the chunk functions built so far (``compiled_function``), oldest first."""
+        return tuple(self._compiled)
+
     def ahead_of_time(
         self, fn: Callable, carry_arg: int, in_specs: Any, out_specs: Any
     ) -> Callable:
