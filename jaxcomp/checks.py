@@ -102,8 +102,11 @@ def array(
 
 
 def _floats(value, name: str, want: tuple, unit: str | None, scalar: bool) -> np.ndarray:
-    """``value`` as a float64 array, or the error of one that holds no numbers."""
+    """``value`` as a float64 array, or the error of one that holds no numbers (None, which
+    numpy would take for NaN, included)."""
     try:
+        if value is None:
+            raise TypeError
         return np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         raise InputError(
