@@ -147,14 +147,10 @@ class ArmMount:
         return self._base_origin(base_pose) + rz(float(base_pose[2])) @ p
 
     def world_to_base(self, p, base_pose) -> np.ndarray:
-        """A world point in the base frame.
+        """A world point ``p`` (3,) m in the base frame, (3,) m: ``base_to_world`` inverted.
 
         Args:
-            p: (3,) m, world frame.
-            base_pose: The base's odometry pose (x m, y m, yaw rad).
-
-        Returns:
-            (3,) m, base frame.
+            p, base_pose: as for ``base_to_world``, ``p`` in the world frame.
         """
         return rz(float(base_pose[2])).T @ (p - self._base_origin(base_pose))
 
@@ -172,37 +168,27 @@ class ArmMount:
         return self.position + self.rotation @ p
 
     def base_to_arm(self, p) -> np.ndarray:
-        """A point of the base frame in the arm frame.
+        """A point ``p`` (3,) m of the base frame in the arm frame, (3,) m: ``arm_to_base``
+        inverted.
 
         Args:
             p: (3,) m, base frame.
-
-        Returns:
-            (3,) m, arm frame.
         """
         return self.rotation.T @ (p - self.position)
 
     def arm_to_world(self, p, base_pose) -> np.ndarray:
-        """A point of the arm frame in the world.
+        """A point ``p`` (3,) m of the arm frame in the world, (3,) m.
 
         Args:
-            p: (3,) m, arm frame.
-            base_pose: The base's odometry pose (x m, y m, yaw rad).
-
-        Returns:
-            (3,) m, world frame.
+            p, base_pose: as for ``base_to_world``, ``p`` in the arm frame.
         """
         return self.base_to_world(self.arm_to_base(p), base_pose)
 
     def world_to_arm(self, p, base_pose) -> np.ndarray:
-        """A world point in the arm frame.
+        """A world point ``p`` (3,) m in the arm frame, (3,) m: ``arm_to_world`` inverted.
 
         Args:
-            p: (3,) m, world frame.
-            base_pose: The base's odometry pose (x m, y m, yaw rad).
-
-        Returns:
-            (3,) m, arm frame.
+            p, base_pose: as for ``base_to_world``, ``p`` in the world frame.
         """
         return self.base_to_arm(self.world_to_base(p, base_pose))
 

@@ -184,10 +184,7 @@ def body_com(tree: KinematicTree, q: jax.Array, params: InertialParams | None = 
     """(nb, 3) world position of every body's centre of mass, m.
 
     Args:
-        tree: the kinematic tree (constant; ``Robot.tree``).
-        q: joint positions (nv,), rad (slides: m).
-        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
-            link frames; default the model's.
+        tree, q, params: as for ``gravity``.
 
     Returns:
         (nb, 3) m, world frame.
@@ -205,10 +202,7 @@ def subtree_com(
     A subtree of zero mass reports its body's origin.
 
     Args:
-        tree: the kinematic tree (constant; ``Robot.tree``).
-        q: joint positions (nv,), rad (slides: m).
-        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
-            link frames; default the model's.
+        tree, q, params: as for ``gravity``.
 
     Returns:
         (centre of mass (nb, 3) m in the world frame, mass (nb,) kg).
@@ -353,10 +347,7 @@ def mass_matrix(
     body's centre of mass (Jc) and angular velocity (Jw), as a few batched array operations.
 
     Args:
-        tree: the kinematic tree (constant; ``Robot.tree``).
-        q: joint positions (nv,), rad (slides: m).
-        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
-            link frames; default the model's.
+        tree, q, params: as for ``gravity``.
 
     Returns:
         M(q) (nv, nv): kg m^2 between hinges, kg between slides, kg m across.
@@ -439,11 +430,7 @@ def coriolis(
     without acceleration and gravity.
 
     Args:
-        tree: the kinematic tree (constant; ``Robot.tree``).
-        q: joint positions (nv,), rad (slides: m).
-        dq: joint velocities (nv,), rad/s (slides: m/s).
-        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
-            link frames; default the model's.
+        tree, q, dq, params: as for ``inverse_dynamics``.
 
     Returns:
         C(q, dq) dq (nv,), N m (N for a slide).
@@ -458,11 +445,7 @@ def coriolis_matrix(
     """Coriolis matrix C(q, dq) (nv, nv) from Christoffel symbols (M_dot - 2 C is skew).
 
     Args:
-        tree: the kinematic tree (constant; ``Robot.tree``).
-        q: joint positions (nv,), rad (slides: m).
-        dq: joint velocities (nv,), rad/s (slides: m/s).
-        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
-            link frames; default the model's.
+        tree, q, dq, params: as for ``inverse_dynamics``.
 
     Returns:
         C(q, dq) (nv, nv), such that C dq is in N m (N for a slide).
@@ -483,11 +466,7 @@ def bias(
     (``inverse_dynamics`` without acceleration).
 
     Args:
-        tree: the kinematic tree (constant; ``Robot.tree``).
-        q: joint positions (nv,), rad (slides: m).
-        dq: joint velocities (nv,), rad/s (slides: m/s).
-        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
-            link frames; default the model's.
+        tree, q, dq, params: as for ``inverse_dynamics``.
         gravity_vector: gravity (3,) m/s^2 in the world (base) frame; default (0, 0, -9.81).
 
     Returns:
@@ -509,12 +488,8 @@ def operational_space(
     Lambda = (J M^-1 J^T)^-1, mu = (J_bar^T C - Lambda J_dot) J_bar, N = I - J^T J_bar^T.
 
     Args:
-        tree: the kinematic tree (constant; ``Robot.tree``).
-        q: joint positions (nv,), rad (slides: m).
-        dq: joint velocities (nv,), rad/s (slides: m/s).
+        tree, q, dq, params: as for ``inverse_dynamics``.
         site: site index (into ``tree.site_names``).
-        params: link masses (nb,) kg, COMs (nb, 3) m and inertias (nb, 3, 3) kg m^2 in the
-            link frames; default the model's.
 
     Returns:
         ``OperationalSpace``: x (3,) m, J (3, nv), Lambda (3, 3) kg, mu (3, 3) kg/s, J_bar
