@@ -22,8 +22,8 @@ otherwise). Targets for the jitted step: median <= 50 us, p99 <= 150 us.
 
 ``--vs PYTHON`` compares two versions of jaxcomp side by side in one run: this script runs
 itself in turn under this interpreter and under PYTHON (another environment with another
-jaxcomp installed, e.g. a virtualenv of the previous commit), ``--rounds`` times each, A B A B,
-and prints each variant's median per run and the ratio of the medians (this / other).
+jaxcomp installed, e.g. a virtualenv of the previous commit), ``--rounds`` times each, A B B A
+..., and prints each variant's median per run and the ratio of the medians (this / other).
 Run: python experiments/bench_control.py [--repeats N] [--block N] [--fifo] [--json FILE]
      [--vs PYTHON [--rounds R]]
 """
@@ -248,7 +248,7 @@ def jaxcomp_source(python: str) -> str:
 
 def side_by_side(args) -> dict:
     """This script under this interpreter and under ``args.vs``, ``args.rounds`` runs each in
-    turn (A B A B ...); prints each variant's median per run and the ratio of the medians."""
+    turn (A B B A ...); prints each variant's median per run and the ratio of the medians."""
     sides = {"this": sys.executable, "other": args.vs}
     sources = {k: jaxcomp_source(py) for k, py in sides.items()}
     runs: dict[str, list[dict]] = {k: [] for k in sides}
@@ -256,7 +256,8 @@ def side_by_side(args) -> dict:
     flags += ["--fifo"] if args.fifo else []
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.rounds):
-            for side, python in sides.items():
+            order = list(sides.items())
+            for side, python in order if r % 2 == 0 else order[::-1]:  # A B, B A, ...
                 out = os.path.join(tmp, f"{side}{r}.json")
                 subprocess.run([python, __file__, *flags, "--json", out], check=True)
                 with open(out) as fh:
